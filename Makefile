@@ -1,0 +1,32 @@
+# physicsrl: `make help` lists the targets.
+PYTHON ?= python3.12
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: help setup test bench lint clean
+
+help:  ## list the targets
+	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-6s %s\n", $$1, $$2}'
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)  ## create .venv (Python 3.12) and install physicsrl editable with dev extras
+
+test: setup  ## run the whole test suite (unit and MPI tests)
+	$(BIN)/python -m pytest
+
+bench: setup  ## run the benchmarks of benchmarks/ and write their results files
+	$(BIN)/python benchmarks/ping_scaling.py
+
+lint: setup  ## ruff
+	$(BIN)/ruff check physicsrl tests benchmarks examples
+
+clean:  ## remove the virtual environment and build outputs
+	rm -rf $(VENV) build dist *.egg-info

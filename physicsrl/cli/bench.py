@@ -1,0 +1,74 @@
+"""``physicsrl-bench NAME [overrides]``: the benchmarks, beside their baselines, as tables.
+
+Each benchmark ``NAME`` is the module ``physicsrl.bench.NAME`` (``run(cfg) -> rows``, and
+optionally ``goals(rows)``) with the config ``conf/bench_NAME.yaml``. The leader prints the table
+and the goals and writes ``NAME.csv`` and ``NAME.json`` (with the command line) into the run
+directory.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import json
+import shlex
+import sys
+
+from physicsrl.launch import output_dir, relaunch, run_hydra
+
+BENCHMARKS = {
+    "ping": "cost of one parallel call (report section 3.5)",
+    "ms": "monodomain Mitchell-Schaeffer steps (report section 4.3.3)",
+}
+
+USAGE = "usage: physicsrl-bench NAME [key=value ...] [mpi.ranks=N] [--help | --cfg job]\n\n" + (
+    "\n".join(f"  {name:6s} {what}" for name, what in BENCHMARKS.items())
+)
+
+
+def format_table(rows: list[dict]) -> str:
+    columns = list(dict.fromkeys(key for row in rows for key in row))
+    cells = [columns] + [[str(row.get(column, "")) for column in columns] for row in rows]
+    widths = [max(len(line[i]) for line in cells) for i in range(len(columns))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in cells)
+
+
+def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
+    """Print the table and goals, and write them beside the command line (leader only)."""
+    print(format_table(rows))
+    for text, met in goals:
+        print(f"goal {'met' if met else 'MISSED'}: {text}")
+    directory = output_dir()
+    with open(directory / f"{name}.csv", "w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
+        writer.writeheader()
+        writer.writerows(rows)
+    command = shlex.join(["physicsrl-bench", name, *sys.argv[1:]])
+    record = {"command": command, "rows": rows, "goals": [{"goal": t, "met": m} for t, m in goals]}
+    (directory / f"{name}.json").write_text(json.dumps(record, indent=2))
+    print(f"results: {directory / (name + '.csv')}")
+
+
+def main() -> None:
+    arguments = sys.argv[1:]
+    if not arguments or arguments[0] in ("-h", "--help"):
+        print(USAGE)
+        return
+    name, overrides = arguments[0], arguments[1:]
+    if name not in BENCHMARKS:
+        raise SystemExit(f"error: unknown benchmark {name!r}; choose one of {', '.join(BENCHMARKS)}")
+    relaunch(overrides)
+    module = importlib.import_module(f"physicsrl.bench.{name}")
+
+    def task(cfg) -> None:
+        from mpi4py import MPI
+
+        rows = module.run(cfg)
+        if MPI.COMM_WORLD.rank == 0:
+            report(name, rows, module.goals(rows) if hasattr(module, "goals") else [])
+
+    run_hydra(f"bench_{name}", task, overrides)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""Console entry points under MPI: self-launch, one Hydra run directory, leader-only output.
+
+Every ``physicsrl-*`` command runs either under a launcher (``mpiexec -n 4 physicsrl-train``,
+``srun``) or self-launched with the override ``mpi.ranks=4``, which re-executes the command
+under the ``mpiexec`` that belongs to the installed MPI. All ranks then agree on the run
+directory (Hydra's default is a per-process timestamp, and ranks start seconds apart), only the
+leader writes Hydra's files and logs, and an exception on any rank ends every rank with a
+non-zero exit instead of leaving the others waiting (Hydra alone would catch it and exit 1).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import sys
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
+
+RANKS = re.compile(r"^\+{0,2}mpi\.ranks=(\d+)$")
+LAUNCHER_SIZE = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS")
+CONFIGS = "pkg://physicsrl.conf"
+
+
+class LaunchError(SystemExit):
+    """A bad launch request: exits with status 2 and a one-line message."""
+
+    def __init__(self, message: str):
+        super().__init__(f"error: {message}")
+
+
+def launched_size() -> int | None:
+    """The number of ranks the MPI launcher started, or None when started without one."""
+    for variable in LAUNCHER_SIZE:
+        if variable in os.environ:
+            return int(os.environ[variable])
+    return None
+
+
+def requested_ranks(overrides: list[str]) -> int | None:
+    """The last ``mpi.ranks=N`` among the command-line overrides."""
+    ranks = None
+    for override in overrides:
+        if match := RANKS.match(override):
+            ranks = int(match.group(1))
+    if ranks is not None and ranks < 1:
+        raise LaunchError(f"mpi.ranks={ranks}: the number of ranks must be at least 1")
+    return ranks
+
+
+def mpiexec() -> str:
+    """The ``mpiexec`` of this environment's MPI (the mpich wheel puts it beside python)."""
+    beside = Path(sys.executable).with_name("mpiexec")
+    found = str(beside) if beside.exists() else shutil.which("mpiexec")
+    if found is None:
+        raise LaunchError("mpi.ranks needs mpiexec, which is neither beside python nor on PATH")
+    return found
+
+
+def relaunch(overrides: list[str]) -> None:
+    """Re-execute this command under mpiexec if ``mpi.ranks=N`` asks for more ranks.
+
+    Under a launcher the request must match the launcher's size; nothing happens otherwise.
+    """
+    ranks = requested_ranks(overrides)
+    size = launched_size()
+    if ranks is None or ranks == (size or 1):
+        return
+    if size is not None:
+        raise LaunchError(f"mpi.ranks={ranks}, but the MPI launcher started {size} ranks")
+    os.environ["PYTHONUNBUFFERED"] = "1"
+    command = [mpiexec(), "-n", str(ranks), sys.executable, sys.argv[0], *sys.argv[1:]]
+    os.execv(command[0], command)
+
+
+def run_hydra(config_name: str, task: Callable, overrides: list[str]) -> None:
+    """Run ``task(cfg)`` as a Hydra app with ``overrides`` on every rank of COMM_WORLD."""
+    import hydra
+    from mpi4py import MPI
+    from omegaconf import OmegaConf
+
+    from physicsrl.coordinated import abort_on_error
+
+    comm = MPI.COMM_WORLD
+    started = comm.bcast(datetime.now() if comm.rank == 0 else None, root=0)
+    OmegaConf.register_new_resolver(
+        "leader_now", lambda pattern: started.strftime(pattern), replace=True
+    )
+    if comm.rank != 0:
+        overrides = [
+            *overrides,
+            "hydra.output_subdir=null",
+            "hydra/job_logging=disabled",
+            "hydra/hydra_logging=disabled",
+        ]
+
+    def guarded(cfg) -> None:
+        with abort_on_error(comm):
+            task(cfg)
+
+    sys.argv = [sys.argv[0], *overrides]
+    hydra.main(config_path=CONFIGS, config_name=config_name, version_base=None)(guarded)()
+
+
+def output_dir() -> Path:
+    """The run directory of the current Hydra job (the same on every rank)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return Path(HydraConfig.get().runtime.output_dir)
