@@ -30,7 +30,8 @@ def format_table(rows: list[dict]) -> str:
     columns = list(dict.fromkeys(key for row in rows for key in row))
     cells = [columns] + [[str(row.get(column, "")) for column in columns] for row in rows]
     widths = [max(len(line[i]) for line in cells) for i in range(len(columns))]
-    return "\n".join("  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in cells)
+    lines = ("  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in cells)
+    return "\n".join(lines)
 
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
@@ -56,7 +57,8 @@ def main() -> None:
         return
     name, overrides = arguments[0], arguments[1:]
     if name not in BENCHMARKS:
-        raise SystemExit(f"error: unknown benchmark {name!r}; choose one of {', '.join(BENCHMARKS)}")
+        choices = ", ".join(BENCHMARKS)
+        raise SystemExit(f"error: unknown benchmark {name!r}; choose one of {choices}")
     relaunch(overrides)
     module = importlib.import_module(f"physicsrl.bench.{name}")
 

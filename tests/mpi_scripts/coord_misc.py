@@ -1,0 +1,68 @@
+"""Side-by-side coordinators, sequence checking and idle CPU (argv[1] picks the case)."""
+
+import sys
+import time
+
+from mpi4py import MPI
+
+from physicsrl.coordinated import Coordinated, Coordinator, SequenceDivergence, parallel
+
+comm = MPI.COMM_WORLD
+case = sys.argv[1]
+
+
+class Node(Coordinated):
+    def __init__(self, coordinator):
+        self.register_coordinator(coordinator)
+        self.seen = []
+
+    @parallel
+    def record(self, value):
+        self.seen.append(value)
+
+    @parallel
+    def diverge(self):
+        if comm.rank == 1:
+            self.record("only on rank 1")
+
+
+if case == "side-by-side":
+    # two groups, each with its own leader, driving their objects independently
+    group = comm.Split(comm.rank % 2, comm.rank)
+    coordinator = Coordinator(group)
+    node = Node(coordinator)
+    with coordinator:
+        if coordinator.is_leader():
+            for i in range(50):
+                node.record((comm.rank % 2, i))
+    seen = comm.gather(node.seen, root=0)
+    if comm.rank == 0:
+        for rank, values in enumerate(seen):
+            assert values == [(rank % 2, i) for i in range(50)], (rank, values)
+        print("ok", file=sys.stderr)
+
+elif case == "divergence":
+    coordinator = Coordinator(check=True)
+    node = Node(coordinator)
+    with coordinator:
+        if coordinator.is_leader():
+            node.record(1)
+            try:
+                node.diverge()
+            except SequenceDivergence as error:
+                print(f"reported: {error}", file=sys.stderr)
+                raise SystemExit(3) from None
+
+elif case == "idle":
+    coordinator = Coordinator()
+    node = Node(coordinator)
+    cpu, wall = time.process_time(), time.perf_counter()
+    with coordinator:
+        if coordinator.is_leader():
+            node.record(1)
+            time.sleep(2.0)  # the leader "trains"
+            node.record(2)  # and the follower still answers
+    share = (time.process_time() - cpu) / (time.perf_counter() - wall)
+    shares = comm.gather(share, root=0)
+    if comm.rank == 0:
+        print(f"follower cpu {max(shares[1:]):.4f}", file=sys.stderr)

@@ -1,0 +1,113 @@
+"""The coordination layer: single-rank behaviour in-process, replication and faults under MPI."""
+
+import re
+import time
+
+import pytest
+
+from physicsrl.coordinated import (
+    CoordinationError,
+    Coordinated,
+    Coordinator,
+    parallel,
+    randint,
+    random,
+)
+
+
+class Recorder(Coordinated):
+    def __init__(self, coordinator=None, namespace=None):
+        if coordinator is not None:
+            self.register_coordinator(coordinator, namespace)
+        self.calls = []
+
+    @parallel
+    def record(self, value):
+        """Record a value."""
+        self.calls.append(value)
+        return value * 2
+
+    @parallel
+    def fail(self):
+        raise ValueError("boom")
+
+
+def test_namespaces_increment_and_reject_duplicates():
+    coordinator = Coordinator()
+    assert [coordinator.register(object()) for _ in range(3)] == [0, 1, 2]
+    assert coordinator.register(object(), "sim") == "sim"
+    with pytest.raises(CoordinationError, match="'sim' is already registered"):
+        coordinator.register(object(), "sim")
+
+
+def test_single_rank_calls_run_locally_and_return():
+    coordinator = Coordinator()
+    recorder = Recorder(coordinator)
+    with coordinator:
+        assert recorder.record(21) == 42
+        with pytest.raises(ValueError, match="boom"):
+            recorder.fail()
+        assert recorder.record(1) == 2  # still usable after an exception
+    assert recorder.calls == [21, 1]
+    assert coordinator._sequence == 0  # one rank: nothing was sent
+    assert Recorder.record.__name__ == "record" and Recorder.record.__doc__ == "Record a value."
+
+
+def test_misuse_raises_clear_errors():
+    coordinator = Coordinator()
+    recorder = Recorder(coordinator)
+    with pytest.raises(CoordinationError, match="inside 'with coordinator:'"):
+        recorder.record(1)
+    with pytest.raises(CoordinationError, match="register_coordinator"):
+        Recorder().record(1)
+    with coordinator:
+        with pytest.raises(CoordinationError, match="already inside"):
+            coordinator.__enter__()
+    with pytest.raises(CoordinationError, match="inside 'with coordinator:'"):
+        recorder.record(1)  # the with-block has ended
+
+
+def test_leader_drawn_random_numbers_are_in_range():
+    from mpi4py import MPI
+
+    draws = [randint(MPI.COMM_WORLD, -5, 5) for _ in range(500)]
+    assert set(draws) == set(range(-5, 6))
+    assert all(0.0 <= random() < 1.0 for _ in range(100))
+
+
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_calls_are_replayed_on_every_rank(mpi, ranks):
+    result = mpi(ranks, "tests/mpi_scripts/coord_replay.py", timeout=60)
+    assert "ok" in result.stderr
+
+
+@pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.parametrize("where", ["leader", "follower", "all", "leader-code"])
+def test_a_fault_anywhere_ends_every_rank(mpi, ranks, where):
+    start = time.perf_counter()
+    result = mpi(ranks, "tests/mpi_scripts/coord_fault.py", where, timeout=30, check=False)
+    elapsed = time.perf_counter() - start
+    output = result.stdout + result.stderr
+    assert result.returncode != 0, output
+    assert elapsed < 10, f"took {elapsed:.1f} s to end"
+    assert "unreachable" not in output
+    assert len(re.findall(rf"RuntimeError: injected fault {where}", output)) == 1, output
+
+
+def test_coordinators_on_split_communicators_work_side_by_side(mpi):
+    assert "ok" in mpi(4, "tests/mpi_scripts/coord_misc.py", "side-by-side", timeout=60).stderr
+
+
+def test_sequence_check_reports_the_first_divergence(mpi):
+    result = mpi(2, "tests/mpi_scripts/coord_misc.py", "divergence", timeout=30, check=False)
+    assert result.returncode != 0
+    assert (
+        "reported: ranks diverged in call 2, step 1: the leader ran nothing, rank 1 ran "
+        "Node[0].record" in result.stderr
+    ), result.stderr
+
+
+def test_idle_follower_does_not_spin_a_core(mpi):
+    result = mpi(2, "tests/mpi_scripts/coord_misc.py", "idle", timeout=60)
+    share = float(re.search(r"follower cpu ([0-9.]+)", result.stderr).group(1))
+    assert share < 0.10, f"an idle follower used {share:.1%} of a core"
