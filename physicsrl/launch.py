@@ -87,6 +87,7 @@ def run_hydra(config_name: str, task: Callable, overrides: list[str]) -> None:
     OmegaConf.register_new_resolver(
         "leader_now", lambda pattern: started.strftime(pattern), replace=True
     )
+    overrides = [f"hydra.job.name={config_name}", *overrides]  # names the log file
     if comm.rank != 0:
         overrides = [
             *overrides,

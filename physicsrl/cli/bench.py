@@ -19,6 +19,7 @@ from physicsrl.launch import output_dir, relaunch, run_hydra
 BENCHMARKS = {
     "ping": "cost of one parallel call (report section 3.5)",
     "ms": "monodomain Mitchell-Schaeffer steps (report section 4.3.3)",
+    "env": "ATP environment throughput and TorchRL overhead",
 }
 
 USAGE = "usage: physicsrl-bench NAME [key=value ...] [mpi.ranks=N] [--help | --cfg job]\n\n" + (

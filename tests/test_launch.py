@@ -1,0 +1,135 @@
+"""Console entry points: MPI self-launch, one run directory, leader-only files, wheel install."""
+
+import os
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import MPIEXEC, ROOT
+
+BIN = Path(sys.executable).parent
+QUICK = ["calls=2000", "repeats=1", "idle_seconds=0.1"]
+
+
+def run(command, cwd, timeout=120, env=None):
+    return subprocess.run(
+        command,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, **(env or {})},
+    )
+
+
+def run_directories(root: Path) -> list[Path]:
+    return sorted(p.parent for p in root.glob("outputs/bench_ping/*/ping.csv"))
+
+
+@pytest.mark.parametrize(
+    "launch",
+    [
+        [str(BIN / "physicsrl-bench"), "ping", *QUICK, "mpi.ranks=2"],
+        [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-bench"), "ping", *QUICK],
+    ],
+    ids=["self-launched", "mpiexec"],
+)
+def test_ranks_share_one_run_directory_and_only_the_leader_writes(tmp_path, launch):
+    result = run(launch, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("floor (Bcast 16 B)") == 1  # the table, printed once
+    assert "2      physicsrl " in result.stdout  # measured on 2 ranks
+    [directory] = run_directories(tmp_path)
+    assert sorted(p.name for p in directory.iterdir()) == [
+        ".hydra",
+        "bench_ping.log",
+        "ping.csv",
+        "ping.json",
+    ]
+    assert len(list(tmp_path.rglob(".hydra"))) == 1
+
+
+def test_mismatched_rank_request_is_a_one_line_error(tmp_path):
+    launch = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-bench"), "ping", "mpi.ranks=3"]
+    result = run(launch, cwd=tmp_path, timeout=60)
+    assert result.returncode != 0
+    assert "error: mpi.ranks=3, but the MPI launcher started 2 ranks" in result.stderr
+
+
+def test_unknown_benchmark_is_a_one_line_error(tmp_path):
+    result = run([str(BIN / "physicsrl-bench"), "pong"], cwd=tmp_path)
+    assert result.returncode != 0
+    assert result.stderr.strip() == "error: unknown benchmark 'pong'; choose one of ping, ms, env"
+
+
+def test_an_exception_inside_a_hydra_command_ends_every_rank(tmp_path):
+    # calls=abc reaches range() on every rank: Hydra alone would catch it and leave ranks waiting
+    launch = [str(BIN / "physicsrl-bench"), "ping", "calls=abc", "mpi.ranks=2"]
+    result = run(launch, cwd=tmp_path, timeout=30)
+    assert result.returncode != 0
+    assert "TypeError" in result.stderr
+
+
+def test_configs_are_found_from_a_built_wheel(tmp_path):
+    """Build the wheel, install it alone into a fresh venv, run the console script elsewhere.
+
+    The fresh venv borrows the heavy dependencies (torch, DOLFINx, MPI) from the test's
+    environment through a .pth file; physicsrl itself comes only from the wheel.
+    """
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            str(ROOT),
+            "-w",
+            str(tmp_path / "dist"),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    fresh = tmp_path / "fresh"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(fresh)], check=True)
+    site = next((fresh / "lib").glob("python3*/site-packages"))
+    (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    [wheel] = (tmp_path / "dist").glob("physicsrl-*.whl")
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "--python",
+            str(fresh / "bin" / "python"),
+            "install",
+            "-q",
+            "--no-deps",
+            str(wheel),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    env = {"LD_LIBRARY_PATH": str(BIN.parent / "lib")}  # the mpich wheel's libmpi
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    result = run([str(fresh / "bin" / "physicsrl-bench"), "--help"], cwd=elsewhere, env=env)
+    assert result.returncode == 0 and "ping" in result.stdout
+    result = run(
+        [str(fresh / "bin" / "physicsrl-bench"), "ping", "--cfg", "job"], elsewhere, env=env
+    )
+    assert result.returncode == 0, result.stderr
+    assert "calls: 200000" in result.stdout
+    where = run(
+        [str(fresh / "bin" / "python"), "-c", "import physicsrl; print(physicsrl.__file__)"],
+        elsewhere,
+        env=env,
+    )
+    assert where.stdout.startswith(str(site))
