@@ -6,8 +6,8 @@ import time
 import pytest
 
 from physicsrl.coordinated import (
-    CoordinationError,
     Coordinated,
+    CoordinationError,
     Coordinator,
     parallel,
     randint,
