@@ -1,0 +1,163 @@
+r"""The heat equation as a reinforcement-learning environment (report section 4.2).
+
+.. math::
+
+    \partial_t u = \nabla^2 u + f \quad \text{in } \Omega \times (0, T], \qquad
+    u = u_D \quad \text{on } \partial\Omega, \qquad u = u_0 \quad \text{at } t = 0 .
+
+Implicit Euler with time step :math:`\Delta t`, in weak form: find :math:`u^{n+1} \in V`,
+:math:`u^{n+1} = u_D` on :math:`\partial\Omega`, such that for all :math:`v \in V_0`
+
+.. math::
+
+    \int_\Omega u^{n+1} v + \Delta t\, \nabla u^{n+1} \cdot \nabla v \, dx
+    = \int_\Omega (u^n + \Delta t f)\, v \, dx .
+
+Units are those of the caller (the equation has unit diffusivity). Subclasses add the agent's
+side (observations, actions, rewards); this class owns the simulation and exposes it through
+``@parallel`` methods, so that the leader drives all ranks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import ufl
+from dolfinx import fem, mesh
+from mpi4py import MPI
+
+from physicsrl.coordinated import Coordinated, Coordinator, parallel
+from physicsrl.fem.integrals import WeightedIntegrals, quadrant_weights
+from physicsrl.fem.time_problem import TimeProblem
+from physicsrl.fem.values import assign
+
+
+def default_heat_mesh(comm: MPI.Comm = MPI.COMM_WORLD) -> mesh.Mesh:
+    """The square [-2, 2]^2 split into 50 x 50 x 2 triangles."""
+    return mesh.create_rectangle(comm, [[-2.0, -2.0], [2.0, 2.0]], [50, 50], mesh.CellType.triangle)
+
+
+class HeatEnvironment(Coordinated):
+    """The heat equation on every rank, driven by the leader.
+
+    Parameters
+    ----------
+    coordinator:
+        The coordinator to register with (construct on every rank, in the same order).
+    domain:
+        The mesh (default: :func:`default_heat_mesh`).
+    V:
+        The function space (default: Lagrange degree 1 on ``domain``).
+    dt:
+        Time step, > 0.
+    u0, u_D, f:
+        Initial condition, boundary value and source: each a number, a callable ``f(x)`` with
+        ``x`` of shape (3, n) returning shape (n,), a ``fem.Expression`` or a ``fem.Function``.
+    petsc_options:
+        Linear solver options (see :class:`TimeProblem`).
+    namespace:
+        The coordinator namespace (default: the next integer).
+
+    Values passed to the ``@parallel`` setters from the leader are pickled to the other ranks
+    (lambdas through cloudpickle); ``fem`` objects can be passed only on one rank or from
+    inside another parallel method.
+    """
+
+    def __init__(
+        self,
+        coordinator: Coordinator,
+        domain: mesh.Mesh | None = None,
+        V: fem.FunctionSpace | None = None,
+        dt: float = 0.01,
+        u0=0.0,
+        u_D=1.0,
+        f=0.0,
+        petsc_options: dict | None = None,
+        namespace=None,
+    ):
+        self.register_coordinator(coordinator, namespace)
+        if domain is None:
+            domain = default_heat_mesh() if V is None else V.mesh
+        self.domain = domain
+        self.problem = TimeProblem(self.domain, V, petsc_options)
+        V = self.V = self.problem.V
+        self._u_D = fem.Function(V, name="u_D")
+        self._f = fem.Function(V, name="f")
+        assign(self._u_D, u_D, "u_D")
+        assign(self._f, f, "f")
+
+        tdim = self.domain.topology.dim
+        self.domain.topology.create_connectivity(tdim - 1, tdim)
+        facets = mesh.exterior_facet_indices(self.domain.topology)
+        bc = fem.dirichletbc(self._u_D, fem.locate_dofs_topological(V, tdim - 1, facets))
+
+        u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+        k = self.problem.dt
+        self.problem.set_dt(dt)
+        self.problem.set_bilinear_form(
+            (u * v + k * ufl.inner(ufl.grad(u), ufl.grad(v))) * ufl.dx, [bc]
+        )
+        self.problem.set_linear_form((self.problem.u_n + k * self._f) * v * ufl.dx)
+        self.problem.set_initial_condition(u0)
+        self._quadrants = WeightedIntegrals(V, quadrant_weights(self.domain))
+
+    # the state --------------------------------------------------------------------------
+    def u_n(self) -> fem.Function:
+        """The temperature now (this rank's part)."""
+        return self.problem.u_n
+
+    @property
+    def t(self) -> float:
+        """Time since the initial condition."""
+        return self.problem.t
+
+    # changing the problem ---------------------------------------------------------------
+    @parallel
+    def set_source(self, f) -> None:
+        """Set the source term f; it acts from the next step on."""
+        assign(self._f, f, "f")
+
+    @parallel
+    def set_boundary_value(self, u_D) -> None:
+        """Set the Dirichlet value u_D; it acts from the next step on."""
+        assign(self._u_D, u_D, "u_D")
+
+    @parallel
+    def set_initial_condition(self, u0) -> None:
+        """Set u0; applied now if at t = 0 (e.g. inside :meth:`handle_reset`), else on reset."""
+        self.problem.set_initial_condition(u0)
+
+    # running ----------------------------------------------------------------------------
+    @parallel
+    def advance_time(self, T: float) -> None:
+        """Advance T time units (a whole number of steps); raises ``SimulationDiverged``."""
+        self.problem.solve(T)
+
+    @parallel
+    def reset(self) -> None:
+        """Return to the initial condition at t = 0, then call :meth:`handle_reset`."""
+        self.problem.reset()
+        self.handle_reset()
+
+    def handle_reset(self) -> None:
+        """Override to customise resets (runs on every rank, inside :meth:`reset`).
+
+        Draw random numbers with :func:`physicsrl.coordinated.random` / ``randint`` so that all
+        ranks agree, and call e.g. :meth:`set_initial_condition`.
+        """
+
+    # observing --------------------------------------------------------------------------
+    def compute_ufl_form(self, form: ufl.Form) -> float:
+        """The value of a functional (a UFL form of rank 0) over the whole domain.
+
+        Collective: call it on every rank (e.g. inside a ``@parallel`` method); every rank gets
+        the global value. Compiles the form at each call: for repeated observations prefer
+        :class:`WeightedIntegrals`.
+        """
+        local = fem.assemble_scalar(fem.form(form))
+        return self.domain.comm.allreduce(local, op=MPI.SUM)
+
+    @parallel
+    def quadrant_integrals(self) -> np.ndarray:
+        """Array (4,) of the integral of u over the quadrants around the origin, in the order
+        (x<0, y<0), (x>0, y<0), (x<0, y>0), (x>0, y>0)."""
+        return self._quadrants(self.problem.u_n)

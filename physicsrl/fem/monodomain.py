@@ -1,0 +1,249 @@
+r"""The monodomain Mitchell-Schaeffer model of cardiac tissue (report section 4.3).
+
+Model (equation 3): the transmembrane potential :math:`u` (dimensionless, rest 0, excited
+about 1) and the gate variable :math:`w \in [0, 1]` on a domain :math:`\Omega` (lengths and
+times in the caller's units, ms and mm in the report's examples):
+
+.. math::
+
+    \partial_t u = D \nabla^2 u + J_\mathrm{in}(w, u) + J_\mathrm{out}(u) + I_\mathrm{app},
+    \qquad \nabla u \cdot n = 0 \text{ on } \partial\Omega,
+
+    \frac{dw}{dt} = \begin{cases} (1 - w) / \tau_\mathrm{open} & u < u_\mathrm{gate} \\
+                                  -w / \tau_\mathrm{close} & u \ge u_\mathrm{gate} \end{cases},
+    \qquad J_\mathrm{in} = \frac{w u^2 (1 - u)}{\tau_\mathrm{in}},
+    \qquad J_\mathrm{out} = -\frac{u}{\tau_\mathrm{out}} .
+
+Scheme (equations 4 and 5): forward Euler for :math:`w`, backward Euler for the diffusion of
+:math:`u` with the reaction taken at the old time. Step :math:`n \to n + 1`:
+
+1. :math:`w^{n+1}_i = w^n_i + \Delta t\, g(u^n_i, w^n_i)` at every node :math:`i`, with
+   :math:`g` the right-hand side of the gate equation. For Lagrange spaces (P1, Q1, ...) this
+   pointwise update of the dof values *is* the interpolation of the forward-Euler expression.
+   Ghost entries are updated alike on every rank, so no communication is needed.
+2. Find :math:`u^{n+1} \in V` such that for all :math:`v \in V`
+
+   .. math::
+
+       \int_\Omega u^{n+1} v + \Delta t D\, \nabla u^{n+1} \cdot \nabla v \, dx
+       = \int_\Omega \Big(u^n + \Delta t \big(J_\mathrm{in}(w^n, u^n) + J_\mathrm{out}(u^n)
+         + I_\mathrm{app}\big)\Big) v \, dx .
+
+   The reaction term is integrated exactly: the integrand :math:`w u^3 v` has degree
+   :math:`5p` for Lagrange degree :math:`p` (per direction on quadrilaterals), so the
+   quadrature has degree :math:`5p` (3 x 3 Gauss points on a Q1 cell); this is exact on affine
+   cells. (Interpolating the reaction at the nodes or lumping the mass matrix changes the scheme:
+   the wave then dies on the 60 x 60 grid.) The matrix is assembled once; the linear solver is
+   warm-started from :math:`u^n` (:class:`TimeProblem`).
+
+The applied current :math:`I_\mathrm{app}` is piecewise constant on cells (DG0): a callable is
+evaluated at cell midpoints, so a stimulus region whose edges run along mesh nodes stimulates
+the same cells on any number of ranks.
+
+Batching (not implemented): the state is two arrays of local dof values, ``u`` and ``w``, and
+every per-step operation is either pointwise (the gate update), a form assembly reading
+coefficients, or a solve with a matrix that does not depend on the state. B independent
+replicas on one mesh can therefore stack the state as (B, n_local) arrays, share the matrix,
+preconditioner and quadrature tables, assemble the B right-hand sides in one kernel pass and
+solve with a block Krylov method (PETSc ``KSPMatSolve``) on a dense multi-vector.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import ufl
+from dolfinx import fem, mesh
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from physicsrl.coordinated import Coordinated, Coordinator, parallel
+from physicsrl.fem.time_problem import TimeProblem
+from physicsrl.fem.values import assign, finite, positive
+
+
+def default_ms_mesh(comm: MPI.Comm = MPI.COMM_WORLD, n: int = 60, L: float = 50.0) -> mesh.Mesh:
+    """The square [-L, L]^2 split into n x n quadrilaterals (the report's training grid)."""
+    return mesh.create_rectangle(comm, [[-L, -L], [L, L]], [n, n], mesh.CellType.quadrilateral)
+
+
+class MonodomainMitchellSchaeffer(Coordinated):
+    """The monodomain Mitchell-Schaeffer model on every rank, driven by the leader.
+
+    Parameters
+    ----------
+    coordinator:
+        The coordinator to register with (construct on every rank, in the same order).
+    domain:
+        Any 2D or 3D DOLFINx mesh (default: :func:`default_ms_mesh`, 60 x 60 Q1 on [-50, 50]^2).
+    V:
+        The function space of u and w (default: Lagrange degree 1 on ``domain``).
+    u0, w0, I_app:
+        Initial potential, initial gate and applied current: each a number, a callable ``f(x)``
+        with ``x`` of shape (3, n) returning shape (n,), a ``fem.Expression`` or a
+        ``fem.Function``. Defaults: the resting state u = 0, w = 1, no current.
+    tau_in, tau_out, tau_open, tau_close:
+        Time constants (> 0) of the currents and of the gate.
+    u_gate:
+        Potential at which the gate switches from opening to closing.
+    D:
+        Diffusivity (> 0), length^2 / time.
+    dt:
+        Time step (> 0).
+    quadrature_degree:
+        Quadrature degree of the right-hand side (default: 5 x the element degree, exact).
+    petsc_options:
+        Linear solver options (see :class:`TimeProblem`); ``{"ksp_type": "preonly",
+        "pc_type": "lu"}`` for a direct solver.
+    namespace:
+        The coordinator namespace (default: the next integer).
+
+    Attributes
+    ----------
+    timings:
+        Seconds spent in the gate updates (``"ionic"``), right-hand sides (``"rhs"``) and
+        linear solves (``"solve"``), accumulated over all steps.
+    """
+
+    def __init__(
+        self,
+        coordinator: Coordinator,
+        domain: mesh.Mesh | None = None,
+        V: fem.FunctionSpace | None = None,
+        *,
+        u0=0.0,
+        w0=1.0,
+        I_app=0.0,
+        tau_in: float = 0.3,
+        tau_out: float = 6.0,
+        tau_open: float = 75.0,
+        tau_close: float = 80.0,
+        u_gate: float = 0.13,
+        D: float = 0.013,
+        dt: float = 0.03,
+        quadrature_degree: int | None = None,
+        petsc_options: dict | None = None,
+        namespace=None,
+    ):
+        self.register_coordinator(coordinator, namespace)
+        parameters = {
+            "tau_in": tau_in,
+            "tau_out": tau_out,
+            "tau_open": tau_open,
+            "tau_close": tau_close,
+            "D": D,
+            "dt": dt,
+        }
+        for name, value in parameters.items():
+            positive(name, value)
+        self.u_gate = finite("u_gate", u_gate)
+        self.tau_open, self.tau_close = float(tau_open), float(tau_close)
+        if domain is None:
+            domain = default_ms_mesh() if V is None else V.mesh
+        self.domain = domain
+        self.problem = TimeProblem(domain, V, petsc_options)
+        V = self.V = self.problem.V
+        self.timings = self.problem.timings
+        self.timings["ionic"] = 0.0
+
+        # State: u^n lives in the time problem; w^n and the initial gate here.
+        self._w = fem.Function(V, name="w")
+        self._w0 = fem.Function(V, name="w0")
+        self._I_app = fem.Function(fem.functionspace(domain, ("DG", 0)), name="I_app")
+        self.problem.set_initial_condition(u0)
+        assign(self._w0, w0, "w0")
+        self._w.x.array[:] = self._w0.x.array
+        assign(self._I_app, I_app, "I_app")
+
+        # Forms (equation 5); parameters are constants so that one compiled kernel serves all.
+        def constant(value):
+            return fem.Constant(domain, PETSc.ScalarType(value))
+
+        k, u_n, w = self.problem.dt, self.problem.u_n, self._w
+        u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+        J_in = w * u_n**2 * (1 - u_n) / constant(tau_in)
+        J_out = -u_n / constant(tau_out)
+        degree = (
+            5 * V.ufl_element().embedded_superdegree
+            if quadrature_degree is None
+            else quadrature_degree
+        )
+        dx_exact = ufl.dx(domain=domain, metadata={"quadrature_degree": degree})
+        self.problem.set_dt(dt)
+        self.problem.set_bilinear_form(
+            (u * v + k * constant(D) * ufl.inner(ufl.grad(u), ufl.grad(v))) * ufl.dx
+        )
+        self.problem.set_linear_form((u_n + k * (J_in + J_out + self._I_app)) * v * dx_exact)
+
+        # Gate update w <- a w + b with (a, b) per branch, and work arrays.
+        self._open = np.empty(w.x.array.size, dtype=bool)
+        self._scratch = np.empty(w.x.array.size)
+
+    # the state --------------------------------------------------------------------------
+    def u_n(self) -> fem.Function:
+        """The potential now (this rank's part)."""
+        return self.problem.u_n
+
+    def w_n(self) -> fem.Function:
+        """The gate variable now (this rank's part)."""
+        return self._w
+
+    @property
+    def t(self) -> float:
+        """Time since the initial condition."""
+        return self.problem.t
+
+    @property
+    def dt(self) -> float:
+        return float(self.problem.dt.value)
+
+    # changing the problem ---------------------------------------------------------------
+    @parallel
+    def set_I_app(self, value) -> None:
+        """Set the applied current (piecewise constant on cells); it acts from the next step."""
+        assign(self._I_app, value, "I_app")
+
+    @parallel
+    def set_initial_condition(self, u0, w0) -> None:
+        """Set the initial (u, w); applied now if at t = 0, else at the next reset."""
+        self.problem.set_initial_condition(u0)
+        assign(self._w0, w0, "w0")
+        if not self.problem.started:
+            self._w.x.array[:] = self._w0.x.array
+
+    # running ----------------------------------------------------------------------------
+    @parallel
+    def advance_time(self, T: float) -> None:
+        """Advance T time units (a whole number of steps); raises ``SimulationDiverged`` on
+        every rank if u stops being finite."""
+        steps = self.problem.steps(T)
+        u, w = self.problem.u_n.x.array, self._w.x.array
+        dt, is_open, scratch = self.dt, self._open, self._scratch
+        a_open, b_open, a_close = (
+            1.0 - dt / self.tau_open,
+            dt / self.tau_open,
+            1.0 - dt / self.tau_close,
+        )
+        for _ in range(steps):
+            np.less(u, self.u_gate, out=is_open)  # the gate's branch, from u^n
+            self.problem.step()  # u^{n+1}, from u^n and w^n
+            start = time.perf_counter()
+            np.multiply(w, a_open, out=scratch)  # w^{n+1} = w^n + dt (1 - w^n) / tau_open
+            scratch += b_open
+            w *= a_close  # w^{n+1} = w^n - dt w^n / tau_close
+            np.copyto(w, scratch, where=is_open)
+            self.timings["ionic"] += time.perf_counter() - start
+        self.problem.check_finite()
+
+    @parallel
+    def reset(self) -> None:
+        """Return to the initial condition at t = 0 (I_app is kept), then call
+        :meth:`handle_reset`."""
+        self.problem.reset()
+        self._w.x.array[:] = self._w0.x.array
+        self.handle_reset()
+
+    def handle_reset(self) -> None:
+        """Override to customise resets (runs on every rank, inside :meth:`reset`); draw random
+        numbers with :func:`physicsrl.coordinated.random` / ``randint`` so that ranks agree."""

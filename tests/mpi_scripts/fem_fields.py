@@ -1,0 +1,42 @@
+"""Run the simulators on this job's ranks; the leader saves the fields to argv[1] (npz).
+
+Mitchell-Schaeffer: the benchmark set-up of physicsrl.bench.ms on 24 x 24 cells, 60 steps
+(stimulus during the first 30); heat: the default environment with u0 = x + 2y, 0.1 time units.
+Saved: dof coordinates, u and w of the monodomain model (owned dofs of all ranks), the heat
+quadrant integrals at t = 0 and t = 0.1, and the heat u with its coordinates.
+"""
+
+import sys
+
+import numpy as np
+from mpi4py import MPI
+
+from physicsrl.bench.ms import DT, no_current, stimulus, w0
+from physicsrl.coordinated import Coordinator
+from physicsrl.fem import HeatEnvironment, MonodomainMitchellSchaeffer, default_ms_mesh
+
+
+def gather(function):
+    """(coordinates, values) of the owned dofs of all ranks, on the leader."""
+    n = function.function_space.dofmap.index_map.size_local
+    local = np.column_stack(
+        [function.function_space.tabulate_dof_coordinates()[:n, :2], function.x.array[:n]]
+    )
+    parts = MPI.COMM_WORLD.gather(local, root=0)
+    return np.concatenate(parts) if parts is not None else None
+
+
+coordinator = Coordinator()
+ms = MonodomainMitchellSchaeffer(coordinator, default_ms_mesh(n=24), w0=w0, I_app=stimulus)
+heat = HeatEnvironment(coordinator, u0=lambda x: x[0] + 2 * x[1])
+with coordinator:
+    if coordinator.is_leader():
+        ms.advance_time(30 * DT)
+        ms.set_I_app(no_current)
+        ms.advance_time(30 * DT)
+        initial = heat.quadrant_integrals()
+        heat.advance_time(0.1)
+        quadrants = heat.quadrant_integrals()
+u, w, h = gather(ms.u_n()), gather(ms.w_n()), gather(heat.u_n())
+if MPI.COMM_WORLD.rank == 0:
+    np.savez(sys.argv[1], u=u, w=w, heat=h, quadrants=quadrants, initial=initial)

@@ -1,0 +1,223 @@
+"""The Mitchell-Schaeffer simulator against known answers."""
+
+from __future__ import annotations
+
+import physicsrl.fem  # noqa: F401  (first: loads the MPI library that dolfinx links to)
+
+# isort: split
+
+import numpy as np
+import pytest
+from dolfinx import mesh
+from mpi4py import MPI
+from scipy.integrate import solve_ivp
+
+from physicsrl.coordinated import Coordinator
+from physicsrl.fem import MonodomainMitchellSchaeffer, SimulationDiverged, plot_field
+
+TAU_IN, TAU_OUT, TAU_OPEN, TAU_CLOSE, U_GATE, D, DT = 0.3, 6.0, 75.0, 80.0, 0.13, 0.013, 0.03
+
+
+def reaction(u, w):
+    """Right-hand sides of the model (3) without diffusion: (du/dt, dw/dt)."""
+    du = w * u**2 * (1 - u) / TAU_IN - u / TAU_OUT
+    dw = np.where(u < U_GATE, (1 - w) / TAU_OPEN, -w / TAU_CLOSE)
+    return du, dw
+
+
+def upstroke_and_apd(t, u):
+    """Time u first reaches 0.5, and the time from then until u falls back below 0.5
+    (linear interpolation between samples)."""
+    up = np.nonzero(u >= 0.5)[0]
+    i, j = up[0], up[-1]
+    t_up = t[i - 1] + (0.5 - u[i - 1]) / (u[i] - u[i - 1]) * (t[i] - t[i - 1])
+    t_down = t[j] + (u[j] - 0.5) / (u[j] - u[j + 1]) * (t[j + 1] - t[j])
+    return t_up, t_down - t_up
+
+
+def test_uniform_action_potential_matches_the_ode():
+    """Uniform u, w: diffusion and the implicit solve leave a uniform field unchanged
+    (K 1 = 0, and the exact integral of a constant reaction), so the scheme (4) reduces to
+    forward Euler on the ODE. We compare (a) with that discrete map, to 1e-9, and (b) with the
+    ODE solved by solve_ivp (rtol 1e-10): starting at u = 0.2, w = 1, the upstroke time (u
+    reaches 0.5) agrees within 0.05 time units and the action potential duration (u above
+    0.5) within 1 %, forward Euler's O(dt) error at dt = 0.03."""
+    domain = mesh.create_rectangle(
+        MPI.COMM_WORLD, [[0, 0], [1, 1]], [1, 1], mesh.CellType.quadrilateral
+    )
+    ms = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=0.2, w0=1.0)
+    steps = 12000
+    samples = np.empty(steps + 1)
+    samples[0] = 0.2
+    with ms.coordinator:
+        for n in range(steps):
+            ms.advance_time(DT)
+            samples[n + 1] = ms.u_n().x.array[0]
+    assert np.ptp(ms.u_n().x.array) < 1e-12
+
+    u, w = 0.2, 1.0
+    euler = [u]
+    for _ in range(steps):
+        du, dw = reaction(u, w)
+        u, w = u + DT * du, w + DT * dw
+        euler.append(u)
+    np.testing.assert_allclose(samples, euler, atol=1e-9)
+
+    t = np.arange(steps + 1) * DT
+    ode = solve_ivp(
+        lambda _, y: reaction(*y),
+        (0, t[-1]),
+        [0.2, 1.0],
+        t_eval=t,
+        rtol=1e-10,
+        atol=1e-12,
+        max_step=0.05,
+    )
+    up, apd = upstroke_and_apd(t, samples)
+    up_ode, apd_ode = upstroke_and_apd(t, ode.y[0])
+    assert abs(up - up_ode) < 0.05, (up, up_ode)
+    assert abs(apd - apd_ode) < 0.01 * apd_ode, (apd, apd_ode)
+
+
+def nagumo_speed() -> float:
+    """Travelling-front speed of u_t = D u_xx + F(u) with w = 1 ahead of the front.
+
+    F(u) = u^2 (1 - u) / tau_in - u / tau_out = k u (u - a)(b - u) with k = 1 / tau_in and
+    a < b the roots of u^2 - u + r, r = tau_in / tau_out: a, b = (1 -+ sqrt(1 - 4 r)) / 2.
+    With u = b s: s_t = D s_xx + k b^2 s (s - a/b)(1 - s), the normalised Nagumo equation,
+    whose front speed is sqrt(D k b^2 / 2) (1 - 2 a / b). Hence c = sqrt(D k / 2) (b - 2 a)
+    (= 0.12389 for the default parameters).
+    """
+    k, r = 1 / TAU_IN, TAU_IN / TAU_OUT
+    a, b = (1 - np.sqrt(1 - 4 * r)) / 2, (1 + np.sqrt(1 - 4 * r)) / 2
+    return np.sqrt(D * k / 2) * (b - 2 * a)
+
+
+def front_speed(h: float, dt: float, length: float = 4.0, T: float = 20.0) -> float:
+    """Speed of a planar front in a strip [0, length] x [0, h] of 1 x n quadrilaterals,
+    started by u = 1 on x < 0.3: slope of the front position (where u = 0.5, linear
+    interpolation along x) against time over t in [6, T]."""
+    n = round(length / h)
+    domain = mesh.create_rectangle(
+        MPI.COMM_WORLD, [[0, 0], [length, h]], [n, 1], mesh.CellType.quadrilateral
+    )
+    ms = MonodomainMitchellSchaeffer(
+        Coordinator(),
+        domain,
+        u0=lambda x: np.where(x[0] < 0.3, 1.0, 0.0),
+        w0=1.0,
+        dt=dt,
+        tau_close=1e9,
+    )
+    bottom = np.nonzero(np.isclose(ms.V.tabulate_dof_coordinates()[:, 1], 0.0))[0]
+    x = ms.V.tabulate_dof_coordinates()[bottom, 0]
+    order = np.argsort(x)
+    bottom, x = bottom[order], x[order]
+    times, positions = [], []
+    with ms.coordinator:
+        while ms.t < T - 1e-9:
+            ms.advance_time(round(0.5 / dt) * dt)
+            u = ms.u_n().x.array[bottom]
+            i = np.nonzero(u > 0.5)[0].max()
+            times.append(ms.t)
+            positions.append(x[i] + (u[i] - 0.5) / (u[i] - u[i + 1]) * (x[i + 1] - x[i]))
+    times, positions = np.array(times), np.array(positions)
+    fit = times >= 6.0
+    return np.polyfit(times[fit], positions[fit], 1)[0]
+
+
+def test_conduction_velocity_converges_to_the_nagumo_speed():
+    """A planar front with the gate frozen (tau_close -> infinity, so w = 1 in and ahead of
+    the front, as the Nagumo reduction assumes; with tau_close = 80 w decays within the front
+    and the front is about 1 % slower) travels at the speed of :func:`nagumo_speed`: within
+    0.3 % for h = 0.04, 0.02, 0.01 (dt = h / 5; the front is about sqrt(D tau_in) = 0.06
+    wide) and within 0.1 % on the finest."""
+    c = nagumo_speed()
+    errors = [abs(front_speed(h, h / 5) - c) / c for h in (0.04, 0.02, 0.01)]
+    assert max(errors) < 3e-3, errors
+    assert errors[-1] < 1e-3, errors
+
+
+def reentry(n: int = 60, stimulus_time: float = 30.0) -> MonodomainMitchellSchaeffer:
+    """The report's reentry set-up (section 4.3.3) on n x n Q1 cells: u = 0,
+    w = min(-x/20, 1) for x < 0 else 0, I_app = 50 on |x| < 5, y > 0 for ``stimulus_time``."""
+    return MonodomainMitchellSchaeffer(
+        Coordinator(),
+        physicsrl.fem.default_ms_mesh(n=n),
+        u0=0.0,
+        w0=lambda x: np.where(x[0] < 0, np.minimum(-x[0] / 20, 1), 0.0),
+        I_app=lambda x: np.where((np.abs(x[0]) < 5) & (x[1] > 0), 50.0, 0.0),
+    )
+
+
+def topological_charges(ms: MonodomainMitchellSchaeffer) -> np.ndarray:
+    """Winding numbers of the phase atan2(w - 1/2, u - 1/2) around every grid square of a
+    structured Q1 mesh (serial): +-1 at a phase singularity (a spiral's tip), 0 elsewhere."""
+    xy = ms.V.tabulate_dof_coordinates()[:, :2]
+    order = np.lexsort((xy[:, 0], xy[:, 1]))
+    side = round(np.sqrt(len(order)))
+    phase = np.arctan2(ms.w_n().x.array - 0.5, ms.u_n().x.array - 0.5)[order].reshape(side, side)
+    loop = [phase[:-1, :-1], phase[:-1, 1:], phase[1:, 1:], phase[1:, :-1], phase[:-1, :-1]]
+    total = sum(np.angle(np.exp(1j * (b - a))) for a, b in zip(loop[:-1], loop[1:], strict=True))
+    return np.rint(total / (2 * np.pi)).astype(int)
+
+
+def test_reentry_forms_a_persistent_spiral(tmp_path):
+    """After the report's S1-S2 stimulus (30 time units), the excitation persists (a planar
+    wave would leave the domain and die within about 450 time units) and its phase field has
+    a singularity (net topological charge +-1), which only a rotating spiral has; checked at
+    t = 300 and t = 450 on the 60 x 60 grid."""
+    ms = reentry()
+    with ms.coordinator:
+        ms.advance_time(30.0)
+        ms.set_I_app(0.0)
+        for t in (300.0, 450.0):
+            ms.advance_time(t - ms.t)
+            charges = topological_charges(ms)
+            assert abs(charges.sum()) == 1 and np.count_nonzero(charges) >= 1, charges.sum()
+            assert (ms.u_n().x.array > 0.5).mean() > 0.1
+    plot_field(ms.u_n(), tmp_path / "u.png", "u", t=ms.t)
+    assert (tmp_path / "u.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"dt": 0.0}, "dt"),
+        ({"tau_in": -0.3}, "tau_in"),
+        ({"tau_close": float("inf")}, "tau_close"),
+        ({"D": 0}, "D"),
+        ({"u_gate": float("nan")}, "u_gate"),
+        ({"u0": lambda x: np.ones(3)}, "u0"),
+        ({"w0": float("nan")}, "w0"),
+        ({"I_app": lambda x: np.full(x.shape[1], np.inf)}, "I_app"),
+    ],
+)
+def test_bad_input_raises_value_error_naming_it(kwargs, name):
+    domain = mesh.create_unit_square(MPI.COMM_WORLD, 2, 2, mesh.CellType.quadrilateral)
+    with pytest.raises(ValueError, match=name):
+        MonodomainMitchellSchaeffer(Coordinator(), domain, **kwargs)
+
+
+def test_setters_reset_and_divergence():
+    """set_I_app acts from the next step, reset returns to (u0, w0); a time step far beyond
+    the explicit reaction's stability limit makes u overflow: SimulationDiverged."""
+    domain = mesh.create_unit_square(MPI.COMM_WORLD, 2, 2, mesh.CellType.quadrilateral)
+    ms = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=0.0, w0=1.0)
+    with ms.coordinator:
+        ms.advance_time(0.03)
+        np.testing.assert_allclose(ms.u_n().x.array, 0.0, atol=1e-14)
+        ms.set_I_app(10.0)
+        ms.advance_time(0.03)
+        np.testing.assert_allclose(ms.u_n().x.array, 0.3, rtol=1e-9)
+        with pytest.raises(ValueError, match="I_app"):
+            ms.set_I_app(lambda x: np.zeros((x.shape[1], 2)))
+        ms.reset()
+        assert ms.t == 0.0
+        np.testing.assert_array_equal(ms.u_n().x.array, 0.0)
+        np.testing.assert_array_equal(ms.w_n().x.array, 1.0)
+
+    unstable = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=2.0, w0=1.0, dt=5.0)
+    with unstable.coordinator:
+        with pytest.raises(SimulationDiverged):
+            unstable.advance_time(50.0)
