@@ -160,6 +160,11 @@ class Coordinator:
         self.rank = comm.rank
         self.size = comm.size
         self._channel = comm.Dup() if comm.size > 1 else comm
+        self._oversubscribed = False  # more ranks on this node than cores: yield when polling
+        if comm.size > 1:
+            on_this_node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+            self._oversubscribed = on_this_node.size > len(os.sched_getaffinity(0))
+            on_this_node.Free()
         # Binomial tree rooted at the leader: the parent clears r's highest bit; the children
         # add each higher power of two.
         high = 1 << (self.rank.bit_length() - 1) if self.rank else 0
@@ -271,6 +276,8 @@ class Coordinator:
         if not test():
             spin_until = time.perf_counter() + self.spin_s
             while not test():
+                if self._oversubscribed:
+                    os.sched_yield()  # let the rank we are waiting for have the core
                 if time.perf_counter() > spin_until:
                     sleep = 1e-5
                     while not test():

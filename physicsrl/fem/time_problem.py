@@ -93,6 +93,7 @@ class TimeProblem:
         self._started = False  # a step was taken since construction or the last reset
         self._a: fem.Form | None = None
         self._L: fem.Form | None = None
+        self._rhs = None  # a callable filling the local vector instead of assembling _L
         self._bcs: list[fem.DirichletBC] = []
         self._A: PETSc.Mat | None = None
         self._A_stale = True
@@ -137,6 +138,20 @@ class TimeProblem:
         if len(L.arguments()) != 1 or L.arguments()[0].ufl_function_space() != self.V:
             raise InvalidValue("L: expected a linear form with a test function on V")
         self._L = fem.form(L)
+        self._rhs = None
+
+    def set_rhs(self, rhs) -> None:
+        """Set a callable ``rhs(b)`` that writes the vector of :math:`L` into ``b``, this rank's
+        local array (owned then ghost entries; every entry to be written): the contributions of
+        the cells this rank owns, as DOLFINx's assembler computes them. Ghost entries are then
+        added to their owners. An alternative to :meth:`set_linear_form` (the later call wins)
+        for a right-hand side computed without a UFL form, e.g. by
+        :class:`physicsrl.fem.quadrature.CellQuadrature`.
+        """
+        if not callable(rhs):
+            raise InvalidValue("rhs: expected a callable rhs(b)")
+        self._rhs = rhs
+        self._L = None
 
     def set_initial_condition(self, value, name: str = "u0") -> None:
         """Set the initial condition: a number, callable, ``fem.Expression`` or ``fem.Function``.
@@ -184,14 +199,17 @@ class TimeProblem:
 
     def step(self) -> None:
         """Advance one time step of ``dt``. Collective."""
-        if self._a is None or self._L is None:
+        if self._a is None or (self._L is None and self._rhs is None):
             raise InvalidValue("set the bilinear and linear forms before solving")
         start = time.perf_counter()
         if self._A_stale:
             self._assemble_matrix()
         b = self._b.array
-        b[:] = 0.0
-        fem.assemble_vector(b, self._L)
+        if self._rhs is not None:
+            self._rhs(b)
+        else:
+            b[:] = 0.0
+            fem.assemble_vector(b, self._L)
         if self._bcs:
             fem.apply_lifting(b, [self._a], [self._bcs])
         self._b.scatter_reverse(la.InsertMode.add)
