@@ -1,0 +1,113 @@
+"""Baseline policies for evaluation, usable wherever the agent's policy is (TorchRL style:
+``policy(tensordict)`` writes ``"action"`` and returns the tensordict).
+
+They read only the unbatched keys of :class:`~physicsrl.envs.env.PhysicsEnv`: ``step`` (the
+decisions taken so far) and ``observation``; none keeps state between calls.
+
+Heat: :class:`Constant` (0 = stop at once, 1 = never stop), :class:`HeatOptimal` (the exact
+optimum of :func:`~physicsrl.envs.heat.exact_optimum`). ATP: :class:`Constant` (0 = never
+shock, 1 = always shock), :class:`RandomActions`, :class:`EveryKth`, :class:`Schedule` (shock
+at given decisions) and :func:`best_single_shock` (the best one-shock schedule over evaluation
+seeds). :func:`evaluate` runs a policy for one episode per seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+from physicsrl.envs.heat import HeatOptimum
+
+
+class Policy:
+    """Base class: ``action(tensordict) -> int``; calling writes it as ``"action"``."""
+
+    def action(self, tensordict: TensorDictBase) -> int:
+        raise NotImplementedError
+
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict.set("action", torch.tensor(self.action(tensordict), dtype=torch.int64))
+
+
+class Constant(Policy):
+    """Always ``value`` (heat: 0 stop at once, 1 never stop; ATP: 0 never shock, 1 always)."""
+
+    def __init__(self, value: int):
+        self.value = int(value)
+
+    def action(self, tensordict):
+        return self.value
+
+
+class RandomActions(Policy):
+    """Action 1 with probability ``p`` at each decision, from its own seeded generator."""
+
+    def __init__(self, p: float = 0.5, seed: int = 0):
+        self.p, self.rng = p, np.random.default_rng(seed)
+
+    def action(self, tensordict):
+        return int(self.rng.random() < self.p)
+
+
+class EveryKth(Policy):
+    """Action 1 at decisions ``offset``, ``offset + k``, ... (decisions counted from 0)."""
+
+    def __init__(self, k: int, offset: int = 0):
+        if k < 1:
+            raise ValueError(f"k must be an integer >= 1, got {k!r}")
+        self.k, self.offset = k, offset
+
+    def action(self, tensordict):
+        step = int(tensordict["step"])
+        return int(step >= self.offset and (step - self.offset) % self.k == 0)
+
+
+class Schedule(Policy):
+    """Action 1 at the decisions in ``steps`` (counted from 0), 0 otherwise."""
+
+    def __init__(self, steps: Iterable[int]):
+        self.steps = frozenset(int(s) for s in steps)
+
+    def action(self, tensordict):
+        return int(int(tensordict["step"]) in self.steps)
+
+
+class HeatOptimal(Policy):
+    """The exact optimum of the heat task: identify the level by the nearest recorded
+    observation at this step, then advance until that level's best stopping time."""
+
+    def __init__(self, optimum: HeatOptimum):
+        self.optimum = optimum
+
+    def action(self, tensordict):
+        step = int(tensordict["step"])
+        seen = self.optimum.observations[:, step]  # (levels, size)
+        distance = np.abs(seen - tensordict["observation"].double().numpy()).sum(axis=1)
+        level = int(distance.argmin())
+        return int(step < self.optimum.best_stop[level])
+
+
+def evaluate(env, policy, seeds: Iterable[int]) -> list[float]:
+    """The return of one episode per seed (``env.set_seed(seed)`` before each). Leader only,
+    inside ``with coordinator:``."""
+    returns = []
+    for seed in seeds:
+        env.set_seed(int(seed))
+        rollout = env.rollout(env.task.max_steps + 1, policy, break_when_any_done=True)
+        returns.append(float(rollout["next", "reward"].sum()))
+    return returns
+
+
+def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | None, float]]:
+    """Try a single shock at every decision (and none) over ``seeds``; return the schedule with
+    the best mean return and every schedule's mean (key None: no shock). Snapshot resets make
+    the repeated resets of each seed cheap."""
+    seeds = list(seeds)
+    means: dict[int | None, float] = {None: float(np.mean(evaluate(env, Constant(0), seeds)))}
+    for step in range(env.task.max_steps):
+        means[step] = float(np.mean(evaluate(env, Schedule([step]), seeds)))
+    best = max(means, key=means.get)
+    return Schedule([] if best is None else [best]), means

@@ -1,0 +1,81 @@
+"""``make_env(cfg, coordinator)``: the environment a config describes (stable entry point).
+
+``cfg`` (a ``DictConfig`` or plain mapping) has the groups
+
+- ``env``: ``name`` (a task in :data:`~physicsrl.envs.task.TASKS`: ``heat``, ``atp``) and that
+  task's settings (``conf/env/heat.yaml``, ``conf/env/ms.yaml``);
+- ``observation``: ``name`` (``quadrants``, ``catheter``) and its settings;
+- ``reward``: ``name`` (``heat_stop``, ``atp``) and its settings;
+- ``seed`` (optional, default None): the seed of the episode randomness.
+
+Call it on every rank, in the same order relative to other coordinated objects; then only the
+leader calls ``reset``/``step``, inside ``with coordinator:``. Bad settings raise ValueError
+naming the key (``env.dt must be ...``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from physicsrl.coordinated import Coordinator
+from physicsrl.envs.config import build, plain
+from physicsrl.envs.env import PhysicsEnv
+from physicsrl.envs.observations import OBSERVATIONS
+from physicsrl.envs.rewards import REWARDS
+from physicsrl.envs.task import TASKS
+
+
+def make_env(cfg: Mapping | Any, coordinator: Coordinator) -> PhysicsEnv:
+    """Build task (on this rank), observation and reward from ``cfg``; see the module docstring."""
+    cfg = plain(cfg)
+    for group in ("env", "observation", "reward"):
+        if group not in cfg:
+            raise ValueError(
+                f"{group} is missing from the config (groups: env, observation, reward)"
+            )
+    observation_class, settings = OBSERVATIONS.lookup(cfg["observation"])
+    observation = build(observation_class, settings, "observation")
+    reward_class, settings = REWARDS.lookup(cfg["reward"])
+    reward = build(reward_class, settings, "reward")
+    task_class, settings = TASKS.lookup(cfg["env"])
+    config = build(task_class.Config, settings, "env")
+    task = task_class(coordinator, config, observation)
+    return PhysicsEnv(task, reward, seed=cfg.get("seed"))
+
+
+def load_config(
+    env: str = "heat",
+    observation: str = "quadrants",
+    reward: str = "heat_stop",
+    overrides: tuple[str, ...] | list[str] = (),
+    seed: int | None = None,
+):
+    """The config of ``make_env`` from the shipped YAML files (``physicsrl.conf``), without
+    Hydra: ``overrides`` are dotted ``key=value`` strings, e.g. ``"env.mesh.cells=20"``.
+
+    For scripts, tests and examples; Hydra commands compose the same groups themselves.
+    """
+    from omegaconf import OmegaConf
+
+    root = _config_root()
+    groups = {"env": env, "observation": observation, "reward": reward}
+    cfg = OmegaConf.create(
+        {g: OmegaConf.load(str(root / g / f"{n}.yaml")) for g, n in groups.items()}
+    )
+    cfg.seed = seed
+    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+
+
+def _config_root():
+    """The folder of the shipped configs: the package ``physicsrl.conf`` when installed, the
+    repository's ``conf/`` in a checkout (where a stray ``physicsrl/conf`` folder may shadow
+    the editable mapping)."""
+    from importlib.resources import files
+    from pathlib import Path
+
+    candidates = [files("physicsrl.conf"), Path(__file__).resolve().parents[2] / "conf"]
+    for root in candidates:
+        if (root / "env" / "heat.yaml").is_file():
+            return root
+    raise FileNotFoundError("the physicsrl configs (conf/env/heat.yaml) are not installed")

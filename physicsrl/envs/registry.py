@@ -1,0 +1,43 @@
+"""Name -> class registries, so that a config's ``name`` field selects an implementation.
+
+Adding an observation, a reward or a task is one class decorated with
+``@REGISTRY.register("name")`` plus one YAML file whose ``name`` is that name; the other keys of
+the YAML are the class's config fields (see :func:`physicsrl.envs.config.build`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from physicsrl.envs.config import plain
+
+
+class Registry:
+    """Classes registered under names, for one config group (``observation``, ...)."""
+
+    def __init__(self, group: str):
+        self.group = group
+        self.classes: dict[str, type] = {}
+
+    def register(self, name: str) -> Callable[[type], type]:
+        def decorate(cls: type) -> type:
+            if name in self.classes:
+                raise ValueError(f"{self.group} {name!r} is already registered")
+            self.classes[name] = cls
+            cls.name = name
+            return cls
+
+        return decorate
+
+    def lookup(self, cfg: Mapping | Any) -> tuple[type, dict]:
+        """The class named by ``cfg.name`` and the remaining settings, as a plain dict."""
+        settings = plain(cfg)
+        if not isinstance(settings, Mapping) or "name" not in settings:
+            raise ValueError(f"{self.group} must be a mapping with a 'name', got {settings!r}")
+        settings = dict(settings)
+        name = settings.pop("name")
+        if name not in self.classes:
+            known = ", ".join(sorted(self.classes))
+            raise ValueError(f"{self.group}.name {name!r} is unknown; registered: {known}")
+        return self.classes[name], settings

@@ -1,0 +1,110 @@
+"""The simulator side of an environment: a :class:`Task` lives on every rank.
+
+A task owns a simulator (a :class:`~physicsrl.coordinated.Coordinated` object), the
+observation and its own fused integrals. The leader's TorchRL environment
+(:class:`~physicsrl.envs.env.PhysicsEnv`) makes exactly one parallel call per ``reset`` (unless
+a draw has to be repeated) and per ``step``; everything that touches the fields happens inside
+it, on every rank. Randomness is drawn on the leader by :meth:`Task.draw` and passed as
+arguments, so a seed gives the same episode on any number of ranks.
+
+Construct tasks on every rank in the same order (their coordinator namespaces must match).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+from dolfinx import mesh as dmesh
+from mpi4py import MPI
+
+from physicsrl.coordinated import Coordinated, parallel
+from physicsrl.envs.config import choice, integer, positive
+from physicsrl.envs.registry import Registry
+
+TASKS = Registry("env")
+
+
+@dataclass(frozen=True)
+class SquareMesh:
+    """The square [-extent, extent]^2 split into cells x cells quadrilaterals or 2 x that many
+    triangles (``cell_type``); lengths in the task's units."""
+
+    cells: int = 50
+    extent: float = 2.0
+    cell_type: str = "triangle"
+
+    def __post_init__(self):
+        integer("cells", self.cells, 1)
+        positive("extent", self.extent)
+        choice("cell_type", self.cell_type, ("triangle", "quadrilateral"))
+
+    def create(self, comm: MPI.Comm = MPI.COMM_WORLD) -> dmesh.Mesh:
+        """The DOLFINx mesh (collective)."""
+        e = self.extent
+        kind = getattr(dmesh.CellType, self.cell_type)
+        return dmesh.create_rectangle(comm, [[-e, -e], [e, e]], [self.cells, self.cells], kind)
+
+
+@dataclass
+class Transition:
+    """What one step reports to the leader.
+
+    ``observation``: array (observation size,); ``events``: plain numbers and flags for the
+    reward (see :mod:`physicsrl.envs.rewards`); ``step``: decisions taken so far.
+    """
+
+    observation: np.ndarray
+    events: dict
+    step: int
+    terminated: bool = False
+    truncated: bool = False
+    diverged: bool = False
+    flags: dict = field(default_factory=dict)
+
+
+class Task(Coordinated):
+    """Base class of the simulator side of a task (see the module docstring).
+
+    Subclasses set ``n_actions``, ``events`` (the event keys their transitions carry),
+    ``flags`` (boolean keys copied into the tensordict), ``max_steps`` and ``observation``, and
+    implement :meth:`draw`, :meth:`reset` and :meth:`step` (both ``@parallel``).
+    """
+
+    Config: ClassVar[type]
+    n_actions: ClassVar[int]
+    events: ClassVar[frozenset[str]]
+    flags: ClassVar[tuple[str, ...]] = ()
+    max_steps: int
+
+    def draw(self, rng: np.random.Generator) -> tuple:
+        """The random numbers of one reset, drawn on the leader (plain Python numbers)."""
+        raise NotImplementedError
+
+    @parallel
+    def reset(self, *draws) -> np.ndarray | None:
+        """Start an episode from ``draws``; the first observation, or None on every rank if the
+        state is not finite (the leader then draws again)."""
+        raise NotImplementedError
+
+    @parallel
+    def step(self, action: int) -> Transition:
+        """Apply ``action`` and advance to the next decision."""
+        raise NotImplementedError
+
+    @parallel
+    def field(self) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The field u now, gathered for plotting: dof coordinates (N, 2), values (N,) of all
+        ranks and the integral of u, on the leader; None on the others. Expects
+        ``self.simulator.u_n()`` and ``self.integrals`` (row 0: the integral of u)."""
+        u = self.simulator.u_n()
+        integral = float(self.integrals(u)[0])
+        V = u.function_space
+        n = V.dofmap.index_map.size_local
+        local = np.column_stack([V.tabulate_dof_coordinates()[:n, :2], u.x.array[:n]])
+        gathered = V.mesh.comm.gather(local, root=0)
+        if gathered is None:
+            return None
+        points = np.concatenate(gathered)
+        return points[:, :2], points[:, 2], integral

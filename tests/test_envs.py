@@ -1,0 +1,156 @@
+"""The heat task, the factory and its configs, rewards (issue 4)."""
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from physicsrl.coordinated import Coordinator
+from physicsrl.envs import ATPReward, HeatStop, exact_optimum, load_config, make_env
+from physicsrl.envs.baselines import Constant, HeatOptimal, evaluate
+
+SMALL_HEAT = ["env.mesh.cells=16"]
+
+
+def heat_env(*overrides, seed=0):
+    return make_env(
+        load_config("heat", "quadrants", "heat_stop", [*SMALL_HEAT, *overrides], seed),
+        Coordinator(),
+    )
+
+
+def act(env, action):
+    return env.step(TensorDict({"action": torch.tensor(action)}, batch_size=[]))["next"]
+
+
+def test_heat_specs():
+    env = heat_env()
+    with env.task.coordinator:
+        check_env_specs(env)
+
+
+def test_default_heat_config_is_the_reference_task():
+    """The defaults are the figures of tasks.md: 50 x 50 P1 on [-2, 2]^2 ... and 4 quadrants."""
+    env = make_env(load_config(seed=0), Coordinator())
+    c = env.task.config
+    assert (c.mesh.cells, c.mesh.extent, c.mesh.cell_type) == (50, 2.0, "triangle")
+    assert (c.dt, c.boundary_value, c.levels, c.advance_time, c.max_steps) == (
+        0.01,
+        1.0,
+        (-5, 5),
+        0.1,
+        10,
+    )
+    assert env.reward_fn == HeatStop(0.1, 1.0)
+    assert env.observation_spec["observation"].shape == (4,)
+
+
+def test_heat_rewards_by_hand():
+    """Stop at once: 16 x level (u = level on the area 16). Advancing: -0.1 each, the 10th
+    also gets the integral; the episode ends after 10 steps; the quadrants sum to the integral."""
+    env = heat_env()
+    with env.task.coordinator:
+        for level in (-5, 3):
+            obs = env.task.reset(level)
+            np.testing.assert_allclose(obs, 4 * level, rtol=1e-12)
+            out = act(env, 0)
+            assert out["reward"].item() == pytest.approx(16 * level, rel=1e-6)
+            assert out["done"].item() and out["terminated"].item() and not out["truncated"].item()
+
+        env.task.reset(-5)
+        for k in range(1, 11):
+            out = act(env, 1)
+            assert int(out["step"]) == k
+            if k < 10:
+                assert out["reward"].item() == pytest.approx(-0.1) and not out["done"].item()
+        integral = float(out["observation"].double().sum())
+        assert out["reward"].item() == pytest.approx(-0.1 + integral, rel=1e-5)
+        assert out["terminated"].item() and -80 < integral < 16  # warmed towards u_D = 1
+
+
+def test_heat_exact_optimum_matches_brute_force_and_beats_baselines():
+    env = heat_env("env.max_steps=5", seed=0)
+    with env.task.coordinator:
+        optimum = exact_optimum(env)
+        # Brute force: every level, every stopping time, through the environment's steps.
+        for i, level in enumerate(optimum.levels):
+            for k in range(6):
+                env.task.reset(int(level))
+                total = 0.0
+                for j in range(k + (k < 5)):
+                    out = act(env, int(j < k))
+                    total += out["reward"].item()
+                assert out["done"].item()
+                assert total == pytest.approx(optimum.returns[i, k], rel=1e-5, abs=1e-5)
+        assert optimum.mean == pytest.approx(optimum.best_return.mean())
+        # Cold levels (below u_D = 1) warm up; hot ones stop at once.
+        assert optimum.best_stop[optimum.levels >= 2].max() == 0
+        assert optimum.best_stop[optimum.levels <= -1].min() > 0
+        # The optimal policy attains each level's optimum and beats the other baselines.
+        seeds = range(30)
+        means = {
+            name: np.mean(evaluate(env, policy, seeds))
+            for name, policy in [
+                ("stop", Constant(0)),
+                ("never", Constant(1)),
+                ("optimal", HeatOptimal(optimum)),
+            ]
+        }
+        levels = [int(np.random.default_rng(s).integers(-5, 6)) for s in seeds]
+        expected = np.mean([optimum.best_return[level + 5] for level in levels])
+        assert means["optimal"] == pytest.approx(expected, rel=1e-5)
+        assert means["optimal"] >= max(means["stop"], means["never"])
+
+
+def test_same_seed_same_episode():
+    env = heat_env(seed=5)
+    with env.task.coordinator:
+        first = [env.reset()["observation"].sum().item() for _ in range(5)]
+        env.set_seed(5)
+        assert [env.reset()["observation"].sum().item() for _ in range(5)] == first
+        assert len(set(first)) > 1
+
+
+def test_atp_reward_by_hand():
+    r = ATPReward()
+    assert r({"shock": True, "success": False, "failure": False, "steps": 3}) == -10
+    assert r({"shock": False, "success": True, "failure": False, "steps": 4}) == 496
+    assert r({"shock": True, "success": True, "failure": False, "steps": 15 + 7}) == -10 + 500 - 22
+    assert r({"shock": False, "success": False, "failure": True, "steps": 35}) == 0
+    assert (
+        ATPReward(failure_reward=-50)(
+            {"shock": True, "success": False, "failure": True, "steps": 35}
+        )
+        == -60
+    )
+    h = HeatStop()
+    assert h({"advanced": True, "ended": False, "integral": 7.0}) == -0.1
+    assert h({"advanced": True, "ended": True, "integral": 7.0}) == pytest.approx(6.9)
+    assert h({"advanced": False, "ended": True, "integral": -3.0}) == -3.0
+
+
+@pytest.mark.parametrize(
+    "groups, override, message",
+    [
+        (("heat", "quadrants", "heat_stop"), "env.dt=-1", "env.dt"),
+        (("heat", "quadrants", "heat_stop"), "env.advance_time=0.015", "env.advance_time"),
+        (("heat", "quadrants", "heat_stop"), "env.levels=[3,1]", "env.levels"),
+        (("heat", "quadrants", "heat_stop"), "env.mesh.cell_type=hexagon", "env.mesh.cell_type"),
+        (("heat", "quadrants", "heat_stop"), "env.mesh.cells=0", "env.mesh.cells"),
+        (("heat", "quadrants", "heat_stop"), "env.colour=red", "env.colour"),
+        (("heat", "quadrants", "heat_stop"), "env.name=chess", "env.name"),
+        (("heat", "quadrants", "heat_stop"), "reward.step_cost=abc", "reward.step_cost"),
+        (("heat", "quadrants", "atp"), "seed=0", "reward.name"),
+        (("heat", "catheter", "heat_stop"), "seed=0", "observation.distances"),
+        (("ms", "catheter", "atp"), "observation.mu=0", "observation.mu"),
+        (("ms", "catheter", "atp"), "observation.distances=[]", "observation.distances"),
+        (("ms", "catheter", "atp"), "env.model.tau_in=-0.3", "env.model.tau_in"),
+        (("ms", "catheter", "atp"), "env.shock.duration=60", "env.shock.duration"),
+        (("ms", "catheter", "atp"), "env.reset.half_width=[4,2]", "env.reset.half_width"),
+        (("ms", "catheter", "atp"), "env.max_decisions=0", "env.max_decisions"),
+    ],
+)
+def test_bad_config_values_raise_naming_the_key(groups, override, message):
+    with pytest.raises(ValueError, match=message.replace(".", r"\.")):
+        make_env(load_config(*groups, [override]), Coordinator())

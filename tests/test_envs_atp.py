@@ -1,0 +1,214 @@
+"""The ATP task, the catheter, stimulus regions, snapshot resets and baselines (issue 4)."""
+
+import math
+import time
+
+import dolfinx_solver  # noqa: F401 (loads MPI before dolfinx)
+import numpy as np
+import pytest
+import torch
+import ufl
+from dolfinx import fem, mesh
+from mpi4py import MPI
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from physicsrl.coordinated import Coordinator
+from physicsrl.envs import ATPReward, Catheter, load_config, make_env
+from physicsrl.envs.baselines import Constant, EveryKth, Schedule, best_single_shock, evaluate
+from physicsrl.envs.integrals import FusedIntegrals
+
+# 20 x 20 cells, intervals of 5 time units, 3 decisions + 2 extra waits: ~0.3 s an episode.
+SMALL = [
+    "env.mesh.cells=20",
+    "env.reset.stimulus_time=2",
+    "env.reset.rest_time=3",
+    "env.decision_interval=5",
+    "env.shock.duration=2.5",
+    "env.max_decisions=3",
+    "env.extra_waits=2",
+]
+
+
+def atp_env(*overrides, seed=0):
+    return make_env(load_config("ms", "catheter", "atp", [*SMALL, *overrides], seed), Coordinator())
+
+
+def act(env, action):
+    return env.step(TensorDict({"action": torch.tensor(action)}, batch_size=[]))["next"]
+
+
+def integral(env):
+    return env.task.integrals(env.task.simulator.u_n())[0]
+
+
+def test_atp_specs():
+    env = atp_env()
+    with env.task.coordinator:
+        check_env_specs(env)
+
+
+def test_default_atp_config_is_the_reference_task():
+    cfg = load_config("ms", "catheter", "atp")
+    assert cfg.env.mesh.cells == 60 and cfg.env.mesh.extent == 50 and cfg.env.model.dt == 0.03
+    assert (cfg.env.decision_interval, cfg.env.max_decisions, cfg.env.extra_waits) == (50, 15, 20)
+    assert list(cfg.env.shock.centre) == [0, 25] and cfg.env.shock.radius == 25
+    assert (cfg.env.reset.stimulus_time, cfg.env.reset.rest_time) == (15, 85)
+    assert cfg.observation.mu == 33 and list(cfg.observation.distances) == [37.5, 32.5, 17.5, 12.5]
+    assert (cfg.reward.shock_cost, cfg.reward.success_reward) == (10, 500)
+
+
+def test_atp_failure_and_success_by_hand():
+    # Never succeeding: -10 per shock, 0 per wait; terminated (failure) at the 3rd decision.
+    env = atp_env("env.success_threshold=-1e30")
+    with env.task.coordinator:
+        env.reset()
+        rewards = [act(env, a) for a in (1, 0, 1)]
+        assert [r["reward"].item() for r in rewards] == [-10, 0, -10]
+        assert [r["terminated"].item() for r in rewards] == [False, False, True]
+        assert not any(r["truncated"].item() or r["success"].item() for r in rewards)
+        assert [int(r["step"]) for r in rewards] == [1, 2, 3]
+
+    # Integrals after 5 waits, to pick a threshold first crossed during the extra waits.
+    long = atp_env("env.max_decisions=5", "env.extra_waits=0", "env.success_threshold=-1e30")
+    with long.task.coordinator:
+        long.reset()
+        integrals = []
+        for _ in range(5):
+            act(long, 0)
+            integrals.append(integral(long))
+    threshold = float(min(integrals[3:]) + 1e-9 * abs(min(integrals[3:])))
+    first = next(j for j, value in enumerate(integrals) if value < threshold) + 1
+
+    env = atp_env(f"env.success_threshold={threshold!r}")
+    with env.task.coordinator:
+        env.reset()
+        for k in range(1, 4):
+            out = act(env, 0)
+            if k == first or k == 3:
+                break
+        assert out["terminated"].item() and out["success"].item()
+        # 500 minus the decisions and extra waits taken (the extra waits are in the last step).
+        assert out["reward"].item() == 500 - first
+
+
+def test_divergence_truncates_and_training_goes_on():
+    """dt = 0.1 with the shock's current blows up: the step ends the episode as truncated with
+    "diverged" set, and the next reset starts a normal episode."""
+    env = atp_env("env.model.dt=0.1")
+    with env.task.coordinator:
+        env.reset()
+        out = act(env, 1)
+        assert out["diverged"].item() and out["truncated"].item() and out["done"].item()
+        assert not out["terminated"].item() and out["reward"].item() == -10
+        start = env.reset()
+        assert not start["diverged"].item() and torch.isfinite(start["observation"]).all()
+        assert not act(env, 0)["diverged"].item()
+
+
+def test_catheter_positions():
+    positions = Catheter().positions()
+    assert positions.shape == (20, 2)
+    np.testing.assert_allclose(positions[0], [0, 37.5], atol=1e-12)  # spline 0 points up
+    angle = math.pi / 2 - 2 * math.pi / 5
+    np.testing.assert_allclose(positions[4], 37.5 * np.array([math.cos(angle), math.sin(angle)]))
+    np.testing.assert_allclose(np.hypot(*positions.T), np.tile([37.5, 32.5, 17.5, 12.5], 5))
+
+
+@pytest.mark.parametrize("cell_type", ["quadrilateral", "triangle"])
+def test_catheter_is_mesh_independent(cell_type):
+    """Same smooth field on 60 x 60 and 240 x 240: the readings agree within 5% (in fact
+    ~0.2%); for a linear field they equal 2 pi / mu^2 u(electrode) to rounding."""
+    catheter = Catheter()
+    readings = {}
+    for n in (60, 240):
+        domain = mesh.create_rectangle(
+            MPI.COMM_WORLD, [[-50, -50], [50, 50]], [n, n], getattr(mesh.CellType, cell_type)
+        )
+        V = fem.functionspace(domain, ("Lagrange", 1))
+        integrals = FusedIntegrals(V, catheter.rows(V))
+        u = fem.Function(V)
+        u.interpolate(lambda x: 1 + 0.5 * np.sin(x[0] / 10) * np.cos(x[1] / 13))
+        readings[n] = integrals(u)
+        u.interpolate(lambda x: 2 + 0.01 * x[0] - 0.02 * x[1])
+        p = catheter.positions()
+        np.testing.assert_allclose(
+            integrals(u), 2 * np.pi / 33**2 * (2 + 0.01 * p[:, 0] - 0.02 * p[:, 1]), rtol=1e-10
+        )
+    np.testing.assert_allclose(readings[60], readings[240], rtol=0.05)
+    np.testing.assert_allclose(readings[60], readings[240], rtol=0.005)
+
+
+def test_shock_region_is_a_cell_average_of_the_disk():
+    env = atp_env("env.mesh.cells=60")
+    shock = env.task.shock
+    area = fem.assemble_scalar(fem.form(shock * ufl.dx)) / 50.0
+    assert area == pytest.approx(math.pi * 25**2, rel=0.01)
+    assert shock.x.array.min() >= 0 and shock.x.array.max() == pytest.approx(50)
+
+
+def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
+    overrides = [
+        "env.mesh.cells=60",
+        "env.reset.rest_time=15",
+        f"env.snapshots.directory={tmp_path}",
+    ]
+    env = atp_env(*overrides)
+    task = env.task
+    draws = [(1.5, 3.0, 20.0), (-4.0, 2.5, 12.0)]
+    with task.coordinator:
+        start = time.perf_counter()
+        first = task.reset(*draws[0])
+        induce = time.perf_counter() - start
+        u, w = task.simulator.u_n().x.array.copy(), task.simulator.w_n().x.array.copy()
+        after = act(env, 0)["observation"]
+        task.reset(*draws[1])
+        start = time.perf_counter()
+        again = task.reset(*draws[0])
+        restore = time.perf_counter() - start
+        np.testing.assert_array_equal(again, first)
+        np.testing.assert_array_equal(task.simulator.u_n().x.array, u)
+        np.testing.assert_array_equal(task.simulator.w_n().x.array, w)
+        np.testing.assert_array_equal(act(env, 0)["observation"], after)  # same future
+        assert induce / restore >= 20, (induce, restore)
+        task.save_snapshots()
+
+    fresh = atp_env(*overrides[:2], "env.snapshots.capacity=0")  # induces every time
+    with fresh.task.coordinator:
+        np.testing.assert_array_equal(fresh.task.reset(*draws[0]), first)
+        np.testing.assert_array_equal(fresh.task.simulator.u_n().x.array, u)
+
+    loaded = atp_env(*overrides)  # reads the files written above
+    assert len(loaded.task.snapshots) == 2
+    with loaded.task.coordinator:
+        start = time.perf_counter()
+        np.testing.assert_array_equal(loaded.task.reset(*draws[0]), first)
+        assert induce / (time.perf_counter() - start) >= 20
+        np.testing.assert_array_equal(loaded.task.simulator.w_n().x.array, w)
+
+
+def test_prefill_and_pool():
+    env = atp_env("env.reset.pool=3")
+    with env.task.coordinator:
+        assert env.task.prefill(env.task.pool) == 3
+        assert env.task.prefill(env.task.pool) == 0
+        draws = {env.task.draw(np.random.default_rng(s)) for s in range(20)}
+        assert draws == set(env.task.pool)
+
+
+def test_atp_baselines():
+    env = atp_env()
+    seeds = [0, 1]
+    with env.task.coordinator:
+        never = evaluate(env, Constant(0), seeds)
+        always = evaluate(env, Constant(1), seeds)
+        every = evaluate(env, EveryKth(2), seeds)
+        # Failure: 0 (plus -10 per shock); success after s steps: 500 - s (s <= 3 + 2 extra).
+        assert all(r == 0 or 495 <= r <= 499 for r in never)
+        assert all(r == -30 or 500 - 5 - 30 <= r <= 500 - 1 - 10 for r in always)
+        assert all(r in (-20, 0) or 500 - 5 - 20 <= r <= 499 for r in every)
+        schedule, means = best_single_shock(env, seeds)
+        assert set(means) == {None, 0, 1, 2}
+        assert means[next(iter(schedule.steps), None)] == max(means.values())
+        assert isinstance(schedule, Schedule)
+    assert ATPReward().events == env.task.events
