@@ -4,8 +4,11 @@ The report's benchmark on n x n Q1 cells of [-50, 50]^2, dt = 0.03: u = 0 and
 w = min(-x/20, 1) for x < 0, 0 for x >= 0; I_app = 50 on |x| < 5, y > 0 during the first 30
 steps, then 0 (the current is piecewise constant on cells and evaluated at cell midpoints, so
 the region's edges, which run along mesh nodes, select the same cells on any rank count);
-``steps`` steps, each one parallel ``advance_time(dt)`` call from the leader. Run for physicsrl
-and, unless ``baseline=false``, for the port of the report's code
+``steps`` steps, each one parallel ``advance_time(dt)`` call from the leader (so the
+coordination column holds the per-call costs: the parallel call, the step-count check and the
+finiteness check of u, not only per-step overhead). ``+rhs=form`` runs physicsrl with the
+right-hand side assembled by DOLFINx from the UFL form instead of the numpy kernel. Run for
+physicsrl and, unless ``baseline=false``, for the port of the report's code
 (:mod:`physicsrl.baselines.report_fem`) in the same job.
 
 Per implementation: setup time (mesh excluded, forms, matrix, initial conditions), the first
@@ -97,13 +100,14 @@ def _measure(name: str, build, steps: int) -> tuple[dict, object]:
 def run(cfg) -> list[dict]:
     """The rows (physicsrl, then the baseline) of one benchmark run; the same on every rank."""
     n, steps, baseline = int(cfg.grid.n), int(cfg.steps), bool(cfg.baseline)
+    rhs = str(cfg.get("rhs", "numpy"))  # "+rhs=form": DOLFINx's assembly of the UFL form
     comm = MPI.COMM_WORLD
     domain = default_ms_mesh(comm, n)
 
     def ours():
         coordinator = Coordinator(comm)
         return coordinator, MonodomainMitchellSchaeffer(
-            coordinator, domain, u0=0.0, w0=w0, I_app=stimulus, dt=DT
+            coordinator, domain, u0=0.0, w0=w0, I_app=stimulus, dt=DT, rhs=rhs
         )
 
     def theirs():
@@ -112,7 +116,7 @@ def run(cfg) -> list[dict]:
             coordinator, domain, no_current, w0, stimulus, dt=DT
         )
 
-    row, model = _measure("physicsrl", ours, steps)
+    row, model = _measure("physicsrl" if rhs == "numpy" else f"physicsrl (rhs={rhs})", ours, steps)
     row["grid"] = f"{n}x{n}"
     rows = [row]
     if baseline:
