@@ -16,7 +16,7 @@ from torchrl.envs.utils import check_env_specs
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import ATPReward, Catheter, load_config, make_env
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule, best_single_shock, evaluate
-from physicsrl.envs.integrals import FusedIntegrals
+from physicsrl.fem.integrals import WeightedIntegrals
 
 # 20 x 20 cells, intervals of 5 time units, 3 decisions + 2 extra waits: ~0.3 s an episode.
 SMALL = [
@@ -126,7 +126,7 @@ def test_catheter_is_mesh_independent(cell_type):
             MPI.COMM_WORLD, [[-50, -50], [50, 50]], [n, n], getattr(mesh.CellType, cell_type)
         )
         V = fem.functionspace(domain, ("Lagrange", 1))
-        integrals = FusedIntegrals(V, catheter.rows(V))
+        integrals = WeightedIntegrals(V, catheter.rows(V))
         u = fem.Function(V)
         u.interpolate(lambda x: 1 + 0.5 * np.sin(x[0] / 10) * np.cos(x[1] / 13))
         readings[n] = integrals(u)

@@ -35,12 +35,12 @@ import numpy as np
 
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.envs.config import integer, interval, number, positive, vector
-from physicsrl.envs.integrals import FusedIntegrals, form_rows
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
 from physicsrl.envs.snapshots import SnapshotCache
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
 from physicsrl.fem import MonodomainMitchellSchaeffer, SimulationDiverged
+from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 
 WAIT, SHOCK = 0, 1
 
@@ -165,7 +165,7 @@ class ATPTask(Task):
         self.register_coordinator(coordinator)
         V = self.simulator.V
         # Row 0: the integral of u over the domain (success test); then the observation's rows.
-        self.integrals = FusedIntegrals(V, np.vstack([form_rows(V, [1.0]), observation.rows(V)]))
+        self.integrals = WeightedIntegrals(V, np.vstack([form_rows(V, [1.0]), observation.rows(V)]))
         degree = config.region_quadrature_degree
         self.stimulus = CellAverage(domain, rectangle_above, 3, degree)
         shock = config.shock

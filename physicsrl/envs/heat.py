@@ -20,10 +20,10 @@ import numpy as np
 
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.envs.config import integer, interval, number, positive
-from physicsrl.envs.integrals import FusedIntegrals, form_rows
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
 from physicsrl.fem import HeatEnvironment, SimulationDiverged
+from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 
 STOP, ADVANCE = 0, 1
 
@@ -78,7 +78,7 @@ class HeatTask(Task):
         self.register_coordinator(coordinator)
         V = self.simulator.V
         # Row 0: the integral over the domain; then the observation's rows.
-        self.integrals = FusedIntegrals(V, np.vstack([form_rows(V, [1.0]), observation.rows(V)]))
+        self.integrals = WeightedIntegrals(V, np.vstack([form_rows(V, [1.0]), observation.rows(V)]))
         self.steps = 0
 
     def draw(self, rng: np.random.Generator) -> tuple[int]:

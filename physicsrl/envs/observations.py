@@ -2,7 +2,7 @@ r"""Observations: what the agent sees, as fixed linear functionals of the field 
 
 An observation is a small frozen dataclass (its fields are the YAML settings of
 ``conf/observation/<name>.yaml``) registered in :data:`OBSERVATIONS`. It contributes ``size``
-rows to the task's :class:`~physicsrl.envs.integrals.FusedIntegrals`, so observing costs one
+rows to the task's :class:`~physicsrl.fem.integrals.WeightedIntegrals`, so observing costs one
 matrix-vector product and one ``Allreduce`` per step, together with the task's own integrals.
 To add one: subclass :class:`Observation`, decorate it with ``@OBSERVATIONS.register("name")``,
 implement :meth:`Observation.rows`, and add the YAML.
@@ -17,9 +17,8 @@ import numpy as np
 from dolfinx import fem
 
 from physicsrl.envs.config import integer, number, positive, vector
-from physicsrl.envs.integrals import form_rows, point_rows
 from physicsrl.envs.registry import Registry
-from physicsrl.fem.integrals import quadrant_weights
+from physicsrl.fem.integrals import form_rows, point_rows, quadrant_weights
 
 OBSERVATIONS = Registry("observation")
 
@@ -78,7 +77,7 @@ class Catheter(Observation):
     :math:`\mu r` (``radial_points`` nodes, exact for the radial weight :math:`r e^{-\mu r}`
     times polynomials of degree < 2 ``radial_points`` - 1) times the trapezoidal rule in the
     angle (``angular_points`` nodes), the basis functions tabulated exactly at the nodes
-    (:func:`~physicsrl.envs.integrals.point_rows`). Nodes outside the domain are dropped. The
+    (:func:`~physicsrl.fem.integrals.point_rows`). Nodes outside the domain are dropped. The
     reading is therefore the kernel applied to the finite element field itself, independent of
     where the nodes are: for u linear it equals :math:`2\pi/\mu^2\, u(c)` to 1e-14 on any mesh,
     and for a smooth field (``1 + sin(x/10) cos(y/13) / 2``) the 60 x 60 and 240 x 240 readings

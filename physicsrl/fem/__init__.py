@@ -12,7 +12,12 @@ except ImportError:
 
 from physicsrl.fem.errors import InvalidValue, SimulationDiverged  # noqa: E402
 from physicsrl.fem.heat import HeatEnvironment, default_heat_mesh  # noqa: E402
-from physicsrl.fem.integrals import WeightedIntegrals, quadrant_weights  # noqa: E402
+from physicsrl.fem.integrals import (  # noqa: E402
+    WeightedIntegrals,
+    form_rows,
+    point_rows,
+    quadrant_weights,
+)
 from physicsrl.fem.monodomain import MonodomainMitchellSchaeffer, default_ms_mesh  # noqa: E402
 from physicsrl.fem.plot import plot_field  # noqa: E402
 from physicsrl.fem.time_problem import DEFAULT_PETSC_OPTIONS, TimeProblem  # noqa: E402
@@ -25,6 +30,8 @@ __all__ = [
     "SimulationDiverged",
     "TimeProblem",
     "WeightedIntegrals",
+    "form_rows",
+    "point_rows",
     "default_heat_mesh",
     "default_ms_mesh",
     "plot_field",

@@ -26,7 +26,7 @@ from dolfinx import fem, mesh
 from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinated, Coordinator, parallel
-from physicsrl.fem.integrals import WeightedIntegrals, quadrant_weights
+from physicsrl.fem.integrals import WeightedIntegrals, form_rows, quadrant_weights
 from physicsrl.fem.time_problem import TimeProblem
 from physicsrl.fem.values import assign
 
@@ -98,7 +98,7 @@ class HeatEnvironment(Coordinated):
         )
         self.problem.set_linear_form((self.problem.u_n + k * self._f) * v * ufl.dx)
         self.problem.set_initial_condition(u0)
-        self._quadrants = WeightedIntegrals(V, quadrant_weights(self.domain))
+        self._quadrants = WeightedIntegrals(V, form_rows(V, quadrant_weights(self.domain)))
 
     # the state --------------------------------------------------------------------------
     def u_n(self) -> fem.Function:

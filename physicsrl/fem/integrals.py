@@ -1,21 +1,31 @@
-r"""Integrals of a finite element function against many fixed weights, in one pass.
+r"""Fused integrals of a finite element function against fixed weights: one reduction per use.
 
-For weights :math:`g_1, \dots, g_K` and :math:`u_h = \sum_i u_i \phi_i \in V`,
+For weights :math:`g_1, \dots, g_K` and :math:`u_h = \sum_i u_i \phi_i`,
 
 .. math::
 
-    I_k = \int_\Omega g_k\, u_h \, dx = \sum_i u_i \int_\Omega g_k \phi_i \, dx = (B u)_k,
-    \qquad B_{ki} = \int_\Omega g_k \phi_i \, dx .
+    I_k = \int_\Omega g_k\, u_h \, dx = (B u)_k, \qquad B_{ki} = \int_\Omega g_k \phi_i \, dx .
 
-The rows of :math:`B` are assembled once (each weight a UFL expression, integrated by
-quadrature); afterwards every evaluation is one dense product with the owned entries of
-:math:`u` and one ``Allreduce`` of :math:`K` numbers, the same on every rank count.
+The rows of :math:`B` (owned dofs of this rank) are computed once, by one of two methods:
+
+- :func:`form_rows`: :math:`g_k` a UFL expression, integrated by the mesh's quadrature. Right
+  for weights that are smooth on the scale of the cells, or indicators of regions bounded by
+  mesh lines (quadrature points lie inside the cells, so the same cells are selected on any
+  number of ranks).
+- :func:`point_rows`: :math:`B_{ki} = \sum_p \omega_{kp} \phi_i(x_{kp})` for quadrature points
+  :math:`x_{kp}` and weights :math:`\omega_{kp}` chosen by the caller (e.g. a polar rule around
+  an electrode). The basis functions are tabulated exactly at the points, so the result does not
+  depend on where the mesh nodes are; right for kernels narrower than a cell. Each point is
+  counted once, on the lowest rank that owns a cell containing it.
+
+:class:`WeightedIntegrals` stacks rows of both kinds: every evaluation is one dense product
+with the owned entries of :math:`u` and one ``Allreduce`` of K numbers, identical up to rounding
+on any number of ranks.
 
 Weights that are indicators of regions should be UFL conditionals on
-:func:`ufl.SpatialCoordinate`: they are evaluated at quadrature points, which lie inside the
-cells, so a region whose edge runs along mesh nodes selects the same cells on any number of
-ranks (node coordinates differ by ~1e-17 between serial and parallel meshes; an indicator
-interpolated at the nodes would not).
+:func:`ufl.SpatialCoordinate` (:func:`quadrant_weights`): evaluated at quadrature points inside
+the cells, they select the same cells on any number of ranks, whereas node coordinates differ by
+~1e-17 between serial and parallel meshes.
 """
 
 from __future__ import annotations
@@ -24,50 +34,111 @@ from collections.abc import Sequence
 
 import numpy as np
 import ufl
-from dolfinx import fem, la
+from dolfinx import fem, geometry, la
 from mpi4py import MPI
 
 from physicsrl.fem.errors import InvalidValue
 
 
+def _owned(V: fem.FunctionSpace) -> int:
+    return V.dofmap.index_map.size_local * V.dofmap.bs
+
+
+def form_rows(
+    V: fem.FunctionSpace, weights: Sequence, quadrature_degree: int | None = None
+) -> np.ndarray:
+    """Array (K, owned dofs): :math:`\\int g_k \\phi_i dx` for UFL expressions ``weights``.
+
+    Collective. ``quadrature_degree`` defaults to UFL's estimate.
+    """
+    metadata = {} if quadrature_degree is None else {"quadrature_degree": quadrature_degree}
+    dx = ufl.dx(domain=V.mesh, metadata=metadata)
+    v = ufl.TestFunction(V)
+    rows = np.empty((len(weights), _owned(V)))
+    for k, g in enumerate(weights):
+        b = fem.assemble_vector(fem.form(g * v * dx))
+        b.scatter_reverse(la.InsertMode.add)
+        rows[k] = b.array[: rows.shape[1]]
+    return rows
+
+
+def point_rows(V: fem.FunctionSpace, points: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Array (K, owned dofs): :math:`\\sum_p \\omega_{kp} \\phi_i(x_{kp})`.
+
+    ``points`` has shape (K, P, 2 or 3) and ``weights`` shape (K, P), the same on every rank.
+    Points outside the mesh contribute nothing; ValueError (on every rank) if all points of a
+    row are outside. Scalar Lagrange spaces. Collective.
+    """
+    mesh = V.mesh
+    K, P = weights.shape
+    xyz = np.zeros((K * P, 3))
+    xyz[:, : points.shape[-1]] = points.reshape(K * P, -1)
+    tdim = mesh.topology.dim
+    owned_cells = np.arange(mesh.topology.index_map(tdim).size_local, dtype=np.int32)
+    tree = geometry.bb_tree(mesh, tdim, entities=owned_cells)
+    colliding = geometry.compute_colliding_cells(
+        mesh, geometry.compute_collisions_points(tree, xyz), xyz
+    )
+    cell = np.full(K * P, -1, dtype=np.int64)
+    for p in range(K * P):
+        links = colliding.links(p)
+        if len(links):
+            cell[p] = links[0]
+    # Each point belongs to the lowest rank that found it.
+    comm = mesh.comm
+    here = np.where(cell >= 0, comm.rank, comm.size)
+    first = np.empty_like(here)
+    comm.Allreduce(here, first, op=MPI.MIN)
+    cell[first != comm.rank] = -1
+    outside = np.flatnonzero((first == comm.size).reshape(K, P).all(axis=1))
+    if len(outside):
+        raise ValueError(f"points: every point of row {outside[0]} lies outside the mesh")
+
+    cmap = mesh.geometry.cmaps[0]
+    element = V.element.basix_element
+    gdofs = (
+        mesh.geometry.dofmaps(0) if callable(mesh.geometry.dofmaps) else mesh.geometry.dofmaps[0]
+    )
+    work = fem.Function(V)
+    result = np.empty((K, _owned(V)))
+    for k in range(K):
+        work.x.array[:] = 0.0
+        mine = np.flatnonzero(cell[k * P : (k + 1) * P] >= 0)
+        cells = cell[k * P + mine]
+        for c in np.unique(cells):
+            at = mine[cells == c]
+            reference = cmap.pull_back(
+                xyz[k * P + at, : mesh.geometry.dim], mesh.geometry.x[gdofs[c], : mesh.geometry.dim]
+            )
+            phi = element.tabulate(0, reference)[0, :, :, 0]  # (points, basis functions)
+            np.add.at(work.x.array, V.dofmap.cell_dofs(c), weights[k, at] @ phi)
+        work.x.scatter_reverse(la.InsertMode.add)
+        result[k] = work.x.array[: result.shape[1]]
+    return result
+
+
 class WeightedIntegrals:
-    """``integrals(u)`` -> array (K,) of :math:`\\int_\\Omega g_k u \\, dx` (see module docstring).
+    """``integrals(u)`` -> array (K,) of :math:`(B u)_k` for fixed rows :math:`B`.
 
-    Parameters
-    ----------
-    V:
-        The function space of the integrands ``u`` (scalar).
-    weights:
-        K UFL expressions :math:`g_k` on ``V``'s mesh.
-    quadrature_degree:
-        Degree of the quadrature of :math:`g_k \\phi_i` (default: UFL's estimate).
-
-    Memory: K x (owned dofs) doubles per rank.
+    ``rows`` has shape (K, owned dofs of ``V``), e.g. stacked :func:`form_rows` and
+    :func:`point_rows`. Memory: K x (owned dofs) doubles per rank.
     """
 
-    def __init__(
-        self, V: fem.FunctionSpace, weights: Sequence, quadrature_degree: int | None = None
-    ):
+    def __init__(self, V: fem.FunctionSpace, rows: np.ndarray):
         self.V = V
-        self._n = V.dofmap.index_map.size_local * V.dofmap.bs
-        metadata = {} if quadrature_degree is None else {"quadrature_degree": quadrature_degree}
-        dx = ufl.dx(domain=V.mesh, metadata=metadata)
-        v = ufl.TestFunction(V)
-        self._B = np.empty((len(weights), self._n))
-        for k, g in enumerate(weights):
-            b = fem.assemble_vector(fem.form(g * v * dx))
-            b.scatter_reverse(la.InsertMode.add)
-            self._B[k] = b.array[: self._n]
-        self._local = np.empty(len(weights))
+        self.rows = np.ascontiguousarray(rows, dtype=float)
+        if self.rows.ndim != 2 or self.rows.shape[1] != _owned(V):
+            raise InvalidValue(f"rows: expected shape (K, {_owned(V)}), got {self.rows.shape}")
+        self._local = np.empty(self.rows.shape[0])
 
     def __call__(self, u: fem.Function) -> np.ndarray:
         """The K integrals of ``u`` (a function on ``V``), the same array on every rank.
 
-        Collective.
+        Collective: one product and one ``Allreduce`` of K doubles.
         """
         if u.function_space != self.V:
             raise InvalidValue("u: the function does not live on the weights' function space")
-        np.matmul(self._B, u.x.array[: self._n], out=self._local)
+        np.matmul(self.rows, u.x.array[: self.rows.shape[1]], out=self._local)
         result = np.empty_like(self._local)
         self.V.mesh.comm.Allreduce(self._local, result, op=MPI.SUM)
         return result
