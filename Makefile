@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: help setup test bench lint clean
+.PHONY: help setup train test bench lint clean
 
 help:  ## list the targets
 	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-6s %s\n", $$1, $$2}'
@@ -18,6 +18,9 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $(STAMP)
 
 setup: $(STAMP)  ## create .venv (Python 3.12) and install physicsrl editable with dev extras
+
+train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
+	$(BIN)/physicsrl-train mpi.ranks=2
 
 test: setup  ## run the whole test suite (unit and MPI tests)
 	$(BIN)/python -m pytest

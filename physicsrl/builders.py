@@ -1,0 +1,224 @@
+"""Factories for the training runner: env, Q-network, exploration, loss, target updater, buffer.
+
+Each factory takes the config section named after the TorchRL object it builds (see
+``conf/train.yaml``) and returns that object, so that :class:`physicsrl.dojo.Dojo` can be used
+from Python with hand-made objects or from ``physicsrl-train`` with these.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import RandomSampler
+from torchrl.envs import EnvBase
+from torchrl.modules import MLP, EGreedyModule, QValueActor
+from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+
+__all__ = [
+    "Normalizer",
+    "load_object",
+    "make_env",
+    "make_q_network",
+    "make_exploration",
+    "make_loss",
+    "make_target_updater",
+    "make_optimizer",
+    "make_buffer",
+]
+
+ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU}
+
+
+def _get(cfg: Any, key: str, default: Any = None) -> Any:
+    """``cfg[key]`` for dicts, DictConfigs and dataclasses alike, or ``default``."""
+    if cfg is None:
+        return default
+    if isinstance(cfg, Mapping):
+        return cfg.get(key, default)
+    try:
+        return cfg.get(key, default)  # DictConfig
+    except AttributeError:
+        return getattr(cfg, key, default)
+
+
+# env ------------------------------------------------------------------------------------------
+def load_object(spec: str) -> Any:
+    """``"package.module:name"`` or ``"/path/to/file.py:name"`` -> the named object."""
+    where, _, name = spec.rpartition(":")
+    if not where or not name:
+        raise ValueError(f"{spec!r}: expected 'module:name' or 'file.py:name'")
+    if where.endswith(".py"):
+        path = Path(where).expanduser().resolve()
+        module_spec = importlib.util.spec_from_file_location(f"_physicsrl_{path.stem}", path)
+        if module_spec is None or module_spec.loader is None:
+            raise ImportError(f"cannot import {path}")
+        module = importlib.util.module_from_spec(module_spec)
+        module_spec.loader.exec_module(module)
+    else:
+        module = importlib.import_module(where)
+    return getattr(module, name)
+
+
+def make_env(cfg: Any, coordinator) -> EnvBase:
+    """The task of ``cfg`` (groups ``env``, ``observation``, ``reward`` and ``seed``).
+
+    Collective: call it on every rank in the same order (the simulator registers with
+    ``coordinator``). ``env.factory: "module:function"`` (or ``"file.py:function"``) picks any
+    factory with the signature of :func:`physicsrl.envs.make_env`; the default is that one.
+    """
+    factory = _get(_get(cfg, "env"), "factory")
+    if factory:
+        return load_object(str(factory))(cfg, coordinator)
+    from physicsrl import envs
+
+    return envs.make_env(cfg, coordinator)
+
+
+# model ----------------------------------------------------------------------------------------
+class Normalizer(nn.Module):
+    """``(x - loc) / scale``, fitted once from data.
+
+    ``loc`` and ``scale`` are plain tensors, not buffers: the online and the target network of
+    ``DQNLoss`` (which copies parameters and buffers) share them, so the target network never
+    sees differently scaled inputs. They travel in ``state_dict`` as the module's extra state.
+    """
+
+    def __init__(self, size: int):
+        super().__init__()
+        self.loc = torch.zeros(size)
+        self.scale = torch.ones(size)
+        self.fitted = False
+
+    @torch.no_grad()
+    def fit(self, observations: torch.Tensor, min_scale: float = 1e-3) -> None:
+        x = observations.reshape(-1, self.loc.numel()).float()
+        self.loc = x.mean(0)
+        self.scale = (
+            x.std(0, unbiased=False).clamp_min(min_scale)
+            if len(x) > 1
+            else torch.ones_like(self.loc)
+        )
+        self.fitted = True
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.loc) / self.scale
+
+    def get_extra_state(self) -> dict:
+        return {"loc": self.loc.clone(), "scale": self.scale.clone(), "fitted": self.fitted}
+
+    def set_extra_state(self, state: dict) -> None:
+        self.loc, self.scale, self.fitted = (
+            state["loc"].clone(),
+            state["scale"].clone(),
+            state["fitted"],
+        )
+
+    def extra_repr(self) -> str:
+        return f"size={self.loc.numel()}, fitted={self.fitted}"
+
+
+def make_q_network(env: EnvBase, network: Any = None, observation_key: str = "observation"):
+    """A greedy ``QValueActor``: [Normalizer] -> MLP -> argmax over the discrete actions.
+
+    ``network``: ``hidden`` (list of layer widths), ``activation`` (relu, tanh, elu, gelu),
+    ``normalize`` (put a :class:`Normalizer` first; the Dojo fits it once from the first
+    collected data).
+    """
+    hidden = list(_get(network, "hidden", [64, 64]))
+    activation = ACTIVATIONS[str(_get(network, "activation", "relu"))]
+    spec = env.action_spec
+    n_actions = int(spec.space.n)
+    n_obs = int(env.observation_spec[observation_key].shape[-1])
+    layers: list[nn.Module] = []
+    if _get(network, "normalize", True):
+        layers.append(Normalizer(n_obs))
+    layers.append(
+        MLP(
+            in_features=n_obs, out_features=n_actions, num_cells=hidden, activation_class=activation
+        )
+    )
+    module = nn.Sequential(*layers)
+    return QValueActor(module, in_keys=[observation_key], spec=spec)
+
+
+def normalizer_of(q_network: nn.Module) -> Normalizer | None:
+    """The :class:`Normalizer` inside ``q_network``, if any."""
+    return next((m for m in q_network.modules() if isinstance(m, Normalizer)), None)
+
+
+def make_exploration(q_network: TensorDictModule, env: EnvBase, exploration: Any = None):
+    """``TensorDictSequential(q_network, EGreedyModule)``: epsilon-greedy, annealed linearly
+    from ``eps_init`` to ``eps_end`` over ``annealing_frames`` (call ``[-1].step(n)``)."""
+    greedy = EGreedyModule(
+        spec=env.action_spec,
+        eps_init=float(_get(exploration, "eps_init", 1.0)),
+        eps_end=float(_get(exploration, "eps_end", 0.05)),
+        annealing_num_steps=int(_get(exploration, "annealing_frames", 1000)),
+    )
+    return TensorDictSequential(q_network, greedy)
+
+
+def make_loss(q_network: TensorDictModule, env: EnvBase, loss: Any = None) -> DQNLoss:
+    """``DQNLoss`` with a target network and a TD(0) value estimator of discount ``gamma``."""
+    double_dqn = bool(_get(loss, "double_dqn", True))
+    module = DQNLoss(
+        value_network=q_network,
+        loss_function=str(_get(loss, "loss_function", "smooth_l1")),
+        delay_value=True,  # a target network (double DQN needs it too)
+        double_dqn=double_dqn,
+        action_space=env.action_spec,
+    )
+    module.make_value_estimator(gamma=float(_get(loss, "gamma", 0.99)))
+    return module
+
+
+def make_target_updater(loss_module: DQNLoss, target: Any = None):
+    """``SoftUpdate(tau=...)`` (Polyak averaging every update) or ``HardUpdate`` (copy every
+    ``period`` updates), from ``target.kind``."""
+    kind = str(_get(target, "kind", "soft"))
+    if kind == "soft":
+        return SoftUpdate(loss_module, tau=float(_get(target, "tau", 0.01)))
+    if kind == "hard":
+        return HardUpdate(
+            loss_module, value_network_update_interval=int(_get(target, "period", 100))
+        )
+    raise ValueError(f"target update kind {kind!r}: use 'soft' or 'hard'")
+
+
+def make_optimizer(loss_module: nn.Module, optim: Any = None) -> torch.optim.Optimizer:
+    """Adam over the trainable parameters of the loss (the target network is not trainable)."""
+    return torch.optim.Adam(
+        [p for p in loss_module.parameters() if p.requires_grad],
+        lr=float(_get(optim, "lr", 1e-3)),
+        weight_decay=float(_get(optim, "weight_decay", 0.0)),
+    )
+
+
+def make_buffer(buffer: Any = None, scratch_dir: str | Path | None = None) -> ReplayBuffer:
+    """Uniform replay of ``size`` transitions in ``LazyTensorStorage`` (RAM) or, with
+    ``storage: memmap``, ``LazyMemmapStorage`` (memory-mapped files under ``scratch_dir``)."""
+    size = int(_get(buffer, "size", 10_000))
+    storage_kind = str(_get(buffer, "storage", "tensor"))
+    if storage_kind == "tensor":
+        storage = LazyTensorStorage(size)
+    elif storage_kind == "memmap":
+        storage = LazyMemmapStorage(
+            size, scratch_dir=None if scratch_dir is None else str(scratch_dir)
+        )
+    else:
+        raise ValueError(f"buffer storage {storage_kind!r}: use 'tensor' or 'memmap'")
+    return ReplayBuffer(
+        storage=storage, sampler=RandomSampler(), batch_size=int(_get(buffer, "batch_size", 64))
+    )
+
+
+def seeds_range(start: int, count: int) -> Sequence[int]:
+    return list(range(int(start), int(start) + int(count)))

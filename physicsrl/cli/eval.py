@@ -1,0 +1,261 @@
+"""``physicsrl-eval run=<run dir or checkpoint> [key=value ...] [mpi.ranks=N]``: evaluate a
+trained greedy policy beside the baselines on held-out seeds.
+
+Rebuilds the env and the Q-network from the config stored in the checkpoint (every rank builds
+the env; the leader evaluates), prints a table (return, success, shocks, episode length; one
+episode per seed), writes ``eval.csv`` (per seed) and ``eval_summary.csv`` (means) and, for the
+physics tasks, ``episode.gif``: the field after the reset and after each decision, catheter
+electrodes, shocks marked. Files go to this command's run directory.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from physicsrl.cli.train import Mpi, check_keys, validate_or_exit
+from physicsrl.launch import output_dir, relaunch, run_hydra
+
+
+@dataclass
+class EvalConfig:
+    mpi: Mpi = field(default_factory=Mpi)
+    run: str = "???"  # a run directory (its latest checkpoint) or a checkpoint file
+    seeds: Any = None  # null: the run's eval.seeds; or a list of seeds
+    baselines: bool = True
+    gif: bool = True
+    gif_seed: Any = None  # null: the first seed
+    fps: float = 1.5
+    curve: bool = True  # learning_curve.png from the run's TensorBoard events
+    overrides: list[str] = field(default_factory=list)  # changes to the run's config
+
+
+def register() -> None:
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="eval_schema", node=EvalConfig)
+
+
+def check(cfg) -> None:
+    from omegaconf import OmegaConf
+
+    check_keys(cfg, EvalConfig)
+    if OmegaConf.is_missing(cfg, "run"):
+        raise ValueError("run is required: run=<run directory or checkpoint file>")
+    checkpoint(str(cfg.run))
+
+
+def checkpoint(run: str) -> Path:
+    """The checkpoint file of ``run`` (a file, or the latest in a run directory)."""
+    from physicsrl.checkpoint import CheckpointManager
+
+    path = Path(run).expanduser()
+    if path.is_file():
+        return path
+    latest = CheckpointManager(path / "checkpoints").latest()
+    if latest is None:
+        raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
+    return latest
+
+
+def main() -> None:
+    overrides = sys.argv[1:]
+    relaunch(overrides)
+    register()
+    if not [o for o in overrides if o.startswith("-")]:
+        validate_or_exit("eval", overrides, check)
+    run_hydra("eval", evaluate, overrides)
+
+
+def evaluate(cfg) -> None:
+    from mpi4py import MPI
+    from omegaconf import OmegaConf
+
+    from physicsrl import builders
+    from physicsrl.checkpoint import CheckpointManager
+    from physicsrl.coordinated import Coordinator
+
+    comm = MPI.COMM_WORLD
+    leader = comm.rank == 0
+    path = checkpoint(str(cfg.run))
+    state = CheckpointManager.load(path) if leader else None
+    config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
+    train_cfg = OmegaConf.merge(
+        OmegaConf.create(config), OmegaConf.from_dotlist(list(cfg.overrides))
+    )
+    coordinator = Coordinator(comm)
+    env = builders.make_env(train_cfg, coordinator)
+    with coordinator:
+        if leader:
+            evaluate_on_leader(cfg, train_cfg, env, state, path)
+
+
+def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
+    import torch
+
+    from physicsrl.cli.bench import format_table
+    from physicsrl.cli.train import baselines, make_dojo, task_name
+
+    dojo = make_dojo(train_cfg, env)
+    dojo.q_network.load_state_dict(state["q_network"])
+    seeds = [int(s) for s in (cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds)]
+    policies = {"greedy DQN": dojo.q_network}
+    if cfg.baselines:
+        policies.update(baselines(env, train_cfg))
+    per_seed, means = [], []
+    for name, policy in policies.items():
+        rows = [{"policy": name, **dojo.run_episode(policy, seed)} for seed in seeds]
+        per_seed.extend(rows)
+        keys = [k for k in rows[0] if k not in ("policy", "seed")]
+        means.append({"policy": name, **{k: sum(r[k] for r in rows) / len(rows) for k in keys}})
+    directory = output_dir()
+    write_csv(directory / "eval.csv", per_seed)
+    write_csv(directory / "eval_summary.csv", means)
+    print(
+        f"checkpoint {path} (iteration {state['counters']['iteration']}, "
+        f"{state['counters']['frames']} env steps); {len(seeds)} held-out seeds, mean per episode:"
+    )
+    print(
+        format_table(
+            [
+                {k: f"{v:.3f}" if isinstance(v, float) else v for k, v in row.items()}
+                for row in means
+            ]
+        )
+    )
+    print(f"results: {directory / 'eval_summary.csv'} (per seed: eval.csv)")
+    if cfg.curve:
+        run_dir = path.parent.parent
+        curve = learning_curve(run_dir, directory / "learning_curve.png", means)
+        if curve is not None:
+            print(f"learning curve: {curve}")
+    if cfg.gif and task_name(env) is not None:
+        seed = int(cfg.gif_seed if cfg.gif_seed is not None else seeds[0])
+        with torch.no_grad():
+            gif = episode_gif(env, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
+        print(
+            f"episode of seed {seed}: actions {gif['actions']}, return {sum(gif['rewards']):.3f}: "
+            f"{directory / 'episode.gif'}"
+        )
+
+
+def learning_curve(run_dir: Path, path: Path, baselines: list[dict] | None = None) -> Path | None:
+    """Plot the run's training and evaluation returns against env steps (from its TensorBoard
+    events), with the baselines' mean returns as horizontal lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir / "tensorboard"))
+    events.Reload()
+    tags = set(events.Tags().get("scalars", []))
+    if "eval/return" not in tags:
+        return None
+    frames = (
+        {e.step: e.value for e in events.Scalars("train/frames")} if "train/frames" in tags else {}
+    )
+
+    def series(tag):
+        points = events.Scalars(tag)
+        return [frames.get(p.step, p.step) for p in points], [p.value for p in points]
+
+    figure, ax = plt.subplots(figsize=(7, 4.2))
+    if "train/return" in tags:
+        x, y = series("train/return")
+        ax.plot(x, y, ".", color="0.6", markersize=3, label="training episodes (epsilon-greedy)")
+    x, y = series("eval/return")
+    ax.plot(x, y, "o-", color="C0", label="greedy policy, held-out seeds")
+    for i, row in enumerate(baselines or []):
+        if row["policy"] != "greedy DQN":
+            ax.axhline(row["return"], ls="--", lw=1, color=f"C{i + 1}", label=row["policy"])
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("return per episode")
+    ax.set_title(f"learning curve: {run_dir.name}")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def episode_gif(env, policy, seed: int, path: Path, fps: float = 1.5) -> dict:
+    """Play one greedy episode and write a GIF: the field after the reset and after each
+    decision, catheter electrodes (if any), shock moments marked. Leader only, inside
+    ``with coordinator`` (one parallel call per frame gathers the field)."""
+    import imageio.v2 as imageio
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from matplotlib.patches import Circle
+    from matplotlib.tri import Triangulation
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    task = vars(env)["task"]
+    env.set_seed(seed)
+    td = env.reset()
+    frames, actions, rewards = [task.field()], [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        while True:
+            td = policy(td)
+            out = env.step(td)["next"]
+            actions.append(int(td["action"]))
+            rewards.append(float(out["reward"]))
+            frames.append(task.field())
+            if bool(out["done"]):
+                break
+            td = TensorDict({k: v for k, v in out.items() if k != "reward"}, batch_size=[])
+    points = frames[0][0]
+    triangulation = Triangulation(points[:, 0], points[:, 1])
+    low = min(float(f[1].min()) for f in frames)
+    high = max(float(f[1].max()) for f in frames)
+    positions = getattr(task.observation, "positions", None)
+    electrodes = positions() if callable(positions) else None
+    shock = getattr(task.config, "shock", None)
+    images = []
+    for i, (_, values, integral) in enumerate(frames):
+        figure, ax = plt.subplots(figsize=(4.2, 4.4))
+        ax.tripcolor(triangulation, values, shading="gouraud", vmin=low, vmax=high, cmap="inferno")
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if electrodes is not None:
+            ax.plot(*np.asarray(electrodes).T, "o", color="cyan", markersize=2.5)
+        action = actions[i - 1] if i else None
+        marked = action == 1 and shock is not None
+        if marked:
+            ax.add_patch(Circle(shock.centre, shock.radius, fill=False, color="red", ls="--", lw=2))
+        done = sum(rewards[:i])
+        title = (
+            "reset" if i == 0 else f"decision {i}: action {action}" + (" SHOCK" if marked else "")
+        )
+        ax.set_title(
+            f"{task.name} seed {seed}, {title}\nintegral {integral:.1f}, return so far {done:.2f}",
+            fontsize=8,
+            color="red" if marked else "black",
+        )
+        figure.tight_layout()
+        figure.canvas.draw()
+        images.append(np.asarray(figure.canvas.buffer_rgba())[..., :3].copy())
+        plt.close(figure)
+    imageio.mimsave(path, images, duration=1000.0 / fps, loop=0)
+    return {"actions": actions, "rewards": rewards}
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,522 @@
+"""The Dojo: DQN training of a Q-network against a (distributed) TorchRL environment.
+
+Report section 5, on TorchRL: :class:`Dojo` collects transitions with an epsilon-greedy policy,
+stores them in a replay buffer, trains the Q-network on sampled batches, evaluates the greedy
+policy on held-out seeds, logs to TensorBoard and a text log, and checkpoints everything needed
+to continue after a kill. Readable top to bottom: ``__init__`` wires the TorchRL objects,
+:meth:`train` is the loop, the rest are its steps.
+
+Run it on the leader inside ``with coordinator`` when the env drives a distributed simulator::
+
+    coordinator = Coordinator()
+    env = make_env(cfg, coordinator)           # every rank, same order
+    with coordinator:
+        if coordinator.is_leader():
+            dojo = Dojo(make_q_network(env), env, log_dir="runs/heat")
+            dojo.train(200)
+
+Reproducibility: every collection batch starts from a reset of the env seeded with
+``train_seed(iteration)`` (``reset_at_each_iter``), and checkpoints hold the weights, target
+network, optimizer, replay buffer, counters and every random generator state (torch, numpy,
+python, the env's), so a resumed run repeats an uninterrupted one step for step when the env
+is deterministic given its seed.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from physicsrl import builders
+from physicsrl.checkpoint import CheckpointManager, rng_state, set_rng_state
+
+__all__ = ["Dojo", "Counters", "episode_metrics", "EVAL_SEEDS"]
+
+log = logging.getLogger("physicsrl.dojo")
+
+EVAL_SEEDS = tuple(range(1_000_000_000, 1_000_000_010))  # held out: training uses seed*1e6 + i
+STANDARD_KEYS = {"observation", "reward", "done", "terminated", "truncated", "step"}
+
+
+@dataclass
+class Counters:
+    iteration: int = 0  # collection batches done
+    frames: int = 0  # env steps taken by the exploration policy
+    episodes: int = 0  # training episodes finished
+    updates: int = 0  # gradient steps
+    time_s: dict = field(default_factory=dict)  # cumulative seconds per phase
+
+
+def episode_metrics(rollout: TensorDictBase, action_counts: dict | None = None) -> dict:
+    """Return, length, the env's scalar flags at the end (success, diverged, ...) and, for
+    each ``name: action`` of ``action_counts``, how often that action was taken (shocks)."""
+    nxt = rollout["next"]
+    metrics = {"return": float(nxt["reward"].sum()), "length": int(rollout.shape[-1])}
+    last = nxt[-1]
+    for key in sorted(last.keys()):
+        if key in STANDARD_KEYS or not isinstance(key, str):
+            continue
+        value = last.get(key)
+        if isinstance(value, torch.Tensor) and value.numel() == 1:
+            metrics[key] = float(value)
+    action = rollout["action"]
+    chosen = action.argmax(-1) if action.dtype == torch.bool else action  # one-hot or index
+    for name, value in (action_counts or {}).items():
+        metrics[name] = int((chosen.reshape(-1) == value).sum())
+    return metrics
+
+
+def _mean(rows: list[dict]) -> dict:
+    keys = dict.fromkeys(k for row in rows for k in row)
+    return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}
+
+
+class Dojo:
+    """DQN training pipeline: collect, store, learn, evaluate, log, checkpoint.
+
+    Parameters
+    ----------
+    q_network:
+        A greedy Q-value actor (``QValueActor``) reading ``"observation"``.
+    env:
+        A TorchRL env with a discrete action spec. Stepped only from the calling rank.
+    optimizer, loss, target_updater, replay_buffer, exploration:
+        TorchRL objects; ``None`` builds the defaults of :mod:`physicsrl.builders` (Adam,
+        double-DQN ``DQNLoss`` with gamma 0.99, ``SoftUpdate``, ``LazyTensorStorage`` buffer,
+        annealed ``EGreedyModule``).
+    frames_per_batch:
+        Env steps per collection batch (one iteration).
+    updates_per_batch:
+        Gradient steps per iteration once ``learning_starts`` frames are stored.
+    learning_starts:
+        Frames collected (with the exploration policy) before learning starts; at that point
+        the Q-network's ``Normalizer`` (if any) is fitted to the stored observations.
+    grad_clip:
+        Max gradient norm (``None``: no clipping).
+    reset_at_each_iter:
+        Start every batch from a fresh episode seeded by :meth:`train_seed` (exact resume).
+    seed:
+        Training seed: batch ``i`` resets the env with seed ``seed * 1_000_000 + i``.
+    eval_every, eval_seeds, eval_max_steps:
+        Evaluate the greedy policy every ``eval_every`` iterations (0: only at the end) on
+        one episode per held-out seed.
+    log_dir:
+        Run directory: TensorBoard events (``tensorboard/``), ``eval.csv`` and checkpoints
+        (``checkpoints/``). ``None``: no files.
+    checkpoint_every, keep_checkpoints:
+        Checkpoint every so many iterations (0: only at the end or on a stop request).
+    coordinator:
+        The env's :class:`~physicsrl.coordinated.Coordinator`: time spent sending calls to the
+        followers is reported as coordination time.
+    progress:
+        Show a tqdm progress bar (with ETA).
+    action_counts:
+        ``{"shocks": 1}``: evaluation also reports how often action 1 was taken.
+    """
+
+    def __init__(
+        self,
+        q_network: torch.nn.Module,
+        env: EnvBase,
+        *,
+        optimizer: torch.optim.Optimizer | None = None,
+        loss: torch.nn.Module | None = None,
+        target_updater: Any = None,
+        replay_buffer: Any = None,
+        exploration: torch.nn.Module | None = None,
+        frames_per_batch: int = 16,
+        updates_per_batch: int = 4,
+        learning_starts: int = 200,
+        grad_clip: float | None = 10.0,
+        reset_at_each_iter: bool = True,
+        seed: int = 0,
+        eval_every: int = 10,
+        eval_seeds: Iterable[int] = EVAL_SEEDS,
+        eval_max_steps: int = 10_000,
+        log_dir: str | Path | None = None,
+        checkpoint_every: int = 0,
+        keep_checkpoints: int = 3,
+        coordinator: Any = None,
+        progress: bool = True,
+        action_counts: dict[str, int] | None = None,
+    ):
+        self.q_network = q_network
+        self.env = env
+        self.loss = loss if loss is not None else builders.make_loss(q_network, env)
+        self.target_updater = target_updater or builders.make_target_updater(self.loss)
+        self.optimizer = optimizer or builders.make_optimizer(self.loss)
+        self.replay_buffer = replay_buffer or builders.make_buffer()
+        self.exploration = exploration or builders.make_exploration(q_network, env)
+        self.frames_per_batch = int(frames_per_batch)
+        self.updates_per_batch = int(updates_per_batch)
+        self.learning_starts = int(learning_starts)
+        self.grad_clip = grad_clip
+        self.reset_at_each_iter = bool(reset_at_each_iter)
+        self.seed = int(seed)
+        self.eval_every = int(eval_every)
+        self.eval_seeds = [int(s) for s in eval_seeds]
+        self.eval_max_steps = int(eval_max_steps)
+        self.log_dir = None if log_dir is None else Path(log_dir)
+        self.checkpoint_every = int(checkpoint_every)
+        self.progress = progress
+        self.action_counts = dict(action_counts or {})
+        self.counters = Counters()
+        self.history: list[dict] = []  # one row per evaluation
+        self.checkpoints = (
+            None
+            if self.log_dir is None
+            else CheckpointManager(self.log_dir / "checkpoints", keep_checkpoints)
+        )
+        self.writer = None
+        self._stop_reason: str | None = None
+        self._pending_rng: dict | None = None
+        self._collector: Collector | None = None
+        self._coordination_s = 0.0
+        if coordinator is not None and getattr(coordinator, "size", 1) > 1:
+            self._time_coordination(coordinator)
+
+    # the loop -----------------------------------------------------------------------------
+    def train(self, iterations: int, handle_signals: bool = True) -> dict:
+        """Train until ``iterations`` iterations have run in total (restored ones included).
+
+        Stops early, after a checkpoint, on SIGINT/SIGTERM (when called from the main thread
+        with ``handle_signals``) or :meth:`request_stop`. Returns :meth:`summary`.
+        """
+        self._check_seeds(iterations)
+        self._open_logs()
+        collector = self._collector = Collector(
+            self.env,
+            self.exploration,
+            frames_per_batch=self.frames_per_batch,
+            total_frames=-1,  # the loop counts iterations itself (and never closes the env)
+            reset_at_each_iter=self.reset_at_each_iter,
+            pre_collect_hook=self._seed_next_batch,
+            auto_register_policy_transforms=False,
+        )
+        if self._pending_rng is not None:  # after the collector's own initial reset
+            set_rng_state(self._pending_rng, self.env)
+            self._pending_rng = None
+        restore = self._install_signal_handlers() if handle_signals else None
+        bar = self._progress_bar(iterations)
+        batches = iter(collector)
+        try:
+            while self.counters.iteration < iterations and self._stop_reason is None:
+                # 1. collect a batch with the exploration policy (the simulation runs here)
+                started, coordination = time.perf_counter(), self._coordination_s
+                data = next(batches).exclude("collector")
+                collect_s = time.perf_counter() - started
+                self._add_time("coordination", self._coordination_s - coordination)
+                self._add_time("simulation", collect_s - (self._coordination_s - coordination))
+                returns = self._record_batch(data)
+                self.exploration[-1].step(data.numel())  # anneal epsilon
+                self.replay_buffer.extend(data.reshape(-1))
+
+                # 2. learn from replayed transitions
+                started = time.perf_counter()
+                losses = self._learn() if self.counters.frames >= self.learning_starts else []
+                self._add_time("learner", time.perf_counter() - started)
+                self.counters.iteration += 1
+
+                # 3. evaluate, log, checkpoint
+                evaluation = None
+                if self.eval_every and self.counters.iteration % self.eval_every == 0:
+                    evaluation = self.evaluate()
+                self._log_iteration(data.numel(), collect_s, losses, returns, evaluation)
+                if self.checkpoint_every and self.counters.iteration % self.checkpoint_every == 0:
+                    self.save_checkpoint()
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(self._postfix(returns), refresh=False)
+        finally:
+            if restore is not None:
+                restore()
+            if bar is not None:
+                bar.close()
+        last = self.history[-1]["iteration"] if self.history else None
+        if self._stop_reason is None and last != self.counters.iteration:
+            self.evaluate()  # the final greedy policy
+        if self.checkpoints is not None and self._saved_iteration != self.counters.iteration:
+            self.save_checkpoint()
+        if self._stop_reason is not None:
+            log.warning("stopped at iteration %d: %s", self.counters.iteration, self._stop_reason)
+        if self.writer is not None:
+            self.writer.flush()
+        return self.summary()
+
+    # the steps ----------------------------------------------------------------------------
+    def train_seed(self, iteration: int) -> int:
+        """The env seed of the batch collected at ``iteration`` (distinct from eval seeds)."""
+        return self.seed * 1_000_000 + iteration
+
+    def _seed_next_batch(self) -> None:
+        if self.reset_at_each_iter:
+            self.env.set_seed(self.train_seed(self.counters.iteration))
+
+    def _record_batch(self, data: TensorDictBase) -> list[float]:
+        """Count frames and episodes; return the returns of the episodes finished here."""
+        n = data.numel()
+        self.counters.frames += n
+        rewards = data["next", "reward"].reshape(n).tolist()
+        dones = data["next", "done"].reshape(n).tolist()
+        if self.reset_at_each_iter or not hasattr(self, "_partial_return"):
+            self._partial_return = 0.0
+        returns = []
+        for reward, done in zip(rewards, dones, strict=True):
+            self._partial_return += reward
+            if done:
+                returns.append(self._partial_return)
+                self._partial_return = 0.0
+        self.counters.episodes += len(returns)
+        return returns
+
+    def _learn(self) -> list[float]:
+        normalizer = builders.normalizer_of(self.q_network)
+        if normalizer is not None and not normalizer.fitted:
+            stored = self.replay_buffer[: len(self.replay_buffer)]
+            normalizer.fit(stored["observation"])  # shared by the online and target networks
+            log.info(
+                "observation normaliser: loc %s scale %s",
+                normalizer.loc.tolist(),
+                normalizer.scale.tolist(),
+            )
+        losses = []
+        for _ in range(self.updates_per_batch):
+            batch = self.replay_buffer.sample()
+            loss = self.loss(batch)["loss"]
+            self.optimizer.zero_grad()
+            loss.backward()
+            if self.grad_clip:
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.grad_clip)
+            self.optimizer.step()
+            self.target_updater.step()
+            self.counters.updates += 1
+            losses.append(float(loss.detach()))
+        return losses
+
+    def run_episode(self, policy: Callable, seed: int) -> dict:
+        """One episode of ``policy`` (deterministic mode) from the env seeded with ``seed``."""
+        self.env.set_seed(seed)
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            rollout = self.env.rollout(self.eval_max_steps, policy, break_when_any_done=True)
+        return {"seed": seed, **episode_metrics(rollout, self.action_counts)}
+
+    def evaluate(
+        self,
+        policy: Callable | None = None,
+        seeds: Sequence[int] | None = None,
+        record: bool = True,
+    ) -> dict:
+        """Average metrics of ``policy`` (default: the greedy Q-network) over ``seeds``
+        (default: the held-out validation seeds); recorded in the history and logs."""
+        started = time.perf_counter()
+        rows = [self.run_episode(policy or self.q_network, s) for s in seeds or self.eval_seeds]
+        metrics = _mean([{k: v for k, v in row.items() if k != "seed"} for row in rows])
+        self._add_time("evaluation", time.perf_counter() - started)
+        if self._collector is not None and not self.reset_at_each_iter:
+            self._collector.reset()  # evaluation moved the env away from the batch in flight
+        if record and policy is None:
+            row = {"iteration": self.counters.iteration, "frames": self.counters.frames, **metrics}
+            self.history.append(row)
+            self._log_evaluation(row)
+        return metrics
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """End :meth:`train` after the current iteration (with a checkpoint)."""
+        self._stop_reason = reason
+
+    @property
+    def stopped(self) -> str | None:
+        return self._stop_reason
+
+    def summary(self) -> dict:
+        last = self.history[-1] if self.history else {}
+        total = sum(self.counters.time_s.values())
+        return {
+            **{k: v for k, v in asdict(self.counters).items() if k != "time_s"},
+            "time_s": dict(self.counters.time_s),
+            "total_s": total,
+            "env_steps_per_s": self.counters.frames
+            / max(self.counters.time_s.get("simulation", 0.0), 1e-9),
+            "eval": last,
+            "stopped": self._stop_reason,
+        }
+
+    # checkpoints --------------------------------------------------------------------------
+    _saved_iteration = -1
+
+    def state_dict(self) -> dict:
+        return {
+            "format": 1,
+            "counters": asdict(self.counters),
+            "history": list(self.history),
+            "q_network": self.q_network.state_dict(),
+            "loss": self.loss.state_dict(),  # online and target network parameters
+            "exploration": self.exploration.state_dict(),  # epsilon
+            "optimizer": self.optimizer.state_dict(),
+            "target_updater": {"counter": getattr(self.target_updater, "counter", None)},
+            "replay_buffer": self.replay_buffer.state_dict(),
+            "rng": rng_state(self.env),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.counters = Counters(**state["counters"])
+        self.history = list(state["history"])
+        self.q_network.load_state_dict(state["q_network"])
+        self.loss.load_state_dict(state["loss"])
+        self.exploration.load_state_dict(state["exploration"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        if state["target_updater"]["counter"] is not None:
+            self.target_updater.counter = state["target_updater"]["counter"]
+        self.replay_buffer.load_state_dict(state["replay_buffer"])
+        self._pending_rng = state["rng"]  # applied when train() has built its collector
+        self._saved_iteration = self.counters.iteration
+
+    def save_checkpoint(self, extra: dict | None = None) -> Path | None:
+        if self.checkpoints is None:
+            return None
+        started = time.perf_counter()
+        state = self.state_dict()
+        state["extra"] = {**getattr(self, "checkpoint_extra", {}), **(extra or {})}
+        path = self.checkpoints.save(state, self.counters.iteration)
+        self._saved_iteration = self.counters.iteration
+        self._add_time("checkpoint", time.perf_counter() - started)
+        log.info(
+            "checkpoint %s (iteration %d, %d frames, buffer %d)",
+            path,
+            self.counters.iteration,
+            self.counters.frames,
+            len(self.replay_buffer),
+        )
+        return path
+
+    def load_checkpoint(self, path: str | Path) -> dict:
+        state = CheckpointManager.load(path)
+        self.load_state_dict(state)
+        log.info(
+            "resumed from %s at iteration %d (%d frames, buffer %d)",
+            path,
+            self.counters.iteration,
+            self.counters.frames,
+            len(self.replay_buffer),
+        )
+        return state
+
+    # logging ------------------------------------------------------------------------------
+    def _open_logs(self) -> None:
+        if self.log_dir is None or self.writer is not None:
+            return
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        # purge_step drops events a killed run wrote after its last checkpoint
+        self.writer = SummaryWriter(
+            str(self.log_dir / "tensorboard"), purge_step=self.counters.iteration + 1
+        )
+
+    def _log_iteration(self, frames, collect_s, losses, returns, evaluation) -> None:
+        if self.writer is None:
+            return
+        step, scalar = self.counters.iteration, self.writer.add_scalar
+        if losses:
+            scalar("train/loss", sum(losses) / len(losses), step)
+        if returns:
+            scalar("train/return", sum(returns) / len(returns), step)
+        scalar("train/epsilon", float(self.exploration[-1].eps), step)
+        scalar("train/frames", self.counters.frames, step)
+        scalar("perf/env_steps_per_s", frames / max(collect_s, 1e-9), step)
+        for phase, seconds in self.counters.time_s.items():
+            scalar(f"time/{phase}_s", seconds, step)
+
+    def _log_evaluation(self, row: dict) -> None:
+        text = " ".join(f"{k} {v:.4g}" for k, v in row.items() if k not in ("iteration", "frames"))
+        log.info("eval at iteration %d (%d frames): %s", row["iteration"], row["frames"], text)
+        if self.writer is not None:
+            for key, value in row.items():
+                if key not in ("iteration", "frames"):
+                    name = "success_rate" if key == "success" else key
+                    self.writer.add_scalar(f"eval/{name}", value, row["iteration"])
+        if self.log_dir is not None:
+            keys = list(dict.fromkeys(k for r in self.history for k in r))
+            with open(self.log_dir / "eval.csv", "w", newline="") as stream:
+                writer = csv.DictWriter(stream, fieldnames=keys)
+                writer.writeheader()
+                writer.writerows(self.history)
+
+    def _progress_bar(self, iterations: int):
+        if not self.progress:
+            return None
+        from tqdm import tqdm
+
+        return tqdm(
+            total=iterations,
+            initial=self.counters.iteration,
+            desc="train",
+            unit="it",
+            dynamic_ncols=True,
+            mininterval=0.5,
+        )
+
+    def _postfix(self, returns: list[float]) -> dict:
+        postfix = {"eps": f"{float(self.exploration[-1].eps):.2f}", "frames": self.counters.frames}
+        if returns:
+            postfix["ret"] = f"{sum(returns) / len(returns):.3g}"
+        if self.history:
+            postfix["eval"] = f"{self.history[-1]['return']:.3g}"
+        return postfix
+
+    def _add_time(self, phase: str, seconds: float) -> None:
+        self.counters.time_s[phase] = self.counters.time_s.get(phase, 0.0) + seconds
+
+    def _time_coordination(self, coordinator) -> None:
+        """Count the leader's time spent sending parallel calls to the followers."""
+        broadcast = coordinator.broadcast
+
+        @functools.wraps(broadcast)
+        def timed(*args, **kwargs):
+            started = time.perf_counter()
+            try:
+                return broadcast(*args, **kwargs)
+            finally:
+                self._coordination_s += time.perf_counter() - started
+
+        coordinator.broadcast = timed
+
+    def _install_signal_handlers(self) -> Callable[[], None] | None:
+        """SIGINT/SIGTERM: finish the iteration, checkpoint, return (twice: interrupt now)."""
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+        def handler(signum, frame):
+            if self._stop_reason is not None and signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            self.request_stop(f"received {signal.Signals(signum).name}")
+
+        for s in previous:
+            signal.signal(s, handler)
+
+        def restore():
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+        return restore
+
+    def _check_seeds(self, iterations: int) -> None:
+        last = self.train_seed(max(iterations - 1, 0))
+        clash = [s for s in self.eval_seeds if self.train_seed(0) <= s <= last]
+        if clash and self.reset_at_each_iter:
+            raise ValueError(f"eval seeds {clash[:3]} are also training seeds: choose others")

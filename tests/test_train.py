@@ -1,0 +1,247 @@
+"""The training runner: the Dojo learns a known optimum; ``physicsrl-train`` under MPI writes
+only the leader's run directory; a killed run resumes to the uninterrupted result; bad configs
+fail fast with one line.
+
+The MPI runs train the toy chain of ``tests/mpi_scripts/train_toy_env.py`` (a coordinated env
+whose every step is a parallel call with an MPI reduction) through ``env.factory``, so that they
+take seconds; the heat task is trained by ``physicsrl-train`` itself (see docs).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.conftest import MPIEXEC, ROOT
+
+BIN = Path(sys.executable).parent
+TRAIN = str(BIN / "physicsrl-train")
+TOY = ROOT / "tests" / "mpi_scripts" / "train_toy_env.py"
+ITERATIONS = 30
+QUICK = [
+    f"+env.factory={TOY}:make_env",
+    f"iterations={ITERATIONS}",
+    "collector.frames_per_batch=16",
+    "optim.learning_starts=64",
+    "eval.every=10",
+    "checkpoint.every=10",
+    "checkpoint.keep=2",
+    "logger.progress=false",
+]
+
+
+def command(run_dir: Path, *extra: str) -> list[str]:
+    return [str(MPIEXEC), "-n", "2", TRAIN, *QUICK, f"hydra.run.dir={run_dir}", *extra]
+
+
+def run(arguments: list[str], cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess:
+    environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run(
+        arguments, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=environment
+    )
+
+
+def final_state(run_dir: Path) -> dict:
+    from physicsrl.checkpoint import CheckpointManager
+
+    return CheckpointManager.load(CheckpointManager(run_dir / "checkpoints").latest())
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """One uninterrupted 2-rank run of the toy task (shared by the tests below)."""
+    cwd = tmp_path_factory.mktemp("reference")
+    run_dir = cwd / "run"
+    result = run(command(run_dir), cwd)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return cwd, run_dir, result
+
+
+def test_dojo_learns_a_known_optimum():
+    """In-process, one rank: greedy return of the 3-step chain reaches its optimum 1."""
+    sys.path.insert(0, str(TOY.parent))
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl import builders
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+
+    torch.manual_seed(0)
+    coordinator = Coordinator()
+    env = ToyChainEnv(coordinator, length=3)
+    with coordinator:
+        q_network = builders.make_q_network(env, {"hidden": [32, 32]})
+        dojo = Dojo(
+            q_network,
+            env,
+            exploration=builders.make_exploration(q_network, env, {"annealing_frames": 500}),
+            frames_per_batch=16,
+            learning_starts=64,
+            eval_every=0,
+            progress=False,
+        )
+        summary = dojo.train(60)
+    assert summary["iteration"] == 60 and summary["frames"] == 960
+    assert summary["eval"]["return"] == pytest.approx(ToyChainEnv.optimum)
+    assert summary["eval"]["success"] == 1.0
+
+
+def test_mpi_run_writes_checkpoints_events_and_log_only_in_the_leader_run_dir(reference):
+    cwd, run_dir, result = reference
+    assert result.stdout.count("held-out seeds, mean per episode") == 1  # leader prints once
+    assert "greedy DQN" in result.stdout
+    checkpoints = sorted(p.name for p in (run_dir / "checkpoints").iterdir())
+    assert checkpoints == ["ckpt_00000020.pt", "ckpt_00000030.pt"]  # every 10, keep 2
+    assert list((run_dir / "tensorboard").glob("events.out.tfevents.*"))
+    assert (run_dir / "train.log").read_text().count("eval at iteration") == 3
+    assert (run_dir / "summary.json").exists() and (run_dir / "eval.csv").exists()
+    # nothing anywhere else: one .hydra, no follower run directory or log
+    assert [p.relative_to(cwd) for p in cwd.rglob(".hydra")] == [Path("run/.hydra")]
+    assert sorted(p.name for p in cwd.iterdir()) == ["run"]
+    assert not list(cwd.rglob("*.tmp"))
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir / "tensorboard"))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    for tag in (
+        "train/loss",
+        "train/return",
+        "train/epsilon",
+        "eval/return",
+        "eval/success_rate",
+        "perf/env_steps_per_s",
+        "time/simulation_s",
+        "time/coordination_s",
+        "time/learner_s",
+    ):
+        assert tag in tags, tag
+    state = final_state(run_dir)
+    assert state["counters"]["iteration"] == ITERATIONS
+
+
+def start_and_wait_for(arguments, cwd: Path, checkpoint: Path) -> subprocess.Popen:
+    """Start ``arguments`` in a new session; return once ``checkpoint`` exists."""
+    process = subprocess.Popen(
+        arguments,
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + 150
+    while not checkpoint.exists():
+        if process.poll() is not None or time.monotonic() > deadline:
+            os.killpg(process.pid, signal.SIGKILL)
+            raise AssertionError(f"no {checkpoint.name} in time:\n{process.stdout.read()}")
+        time.sleep(0.05)
+    return process
+
+
+def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
+    """SIGKILL after a checkpoint, resume; SIGTERM that run (it checkpoints and stops), resume
+    again to the end: counters, evaluations, networks, optimizer and buffer equal the
+    uninterrupted run's."""
+    _, reference_dir, _ = reference
+    run_dir = tmp_path / "run"
+    checkpoints = run_dir / "checkpoints"
+    process = start_and_wait_for(command(run_dir), tmp_path, checkpoints / "ckpt_00000010.pt")
+    os.killpg(process.pid, signal.SIGKILL)  # mpiexec and both ranks: no chance to clean up
+    process.wait(timeout=30)
+    killed_at = final_state(run_dir)["counters"]["iteration"]
+    assert 10 <= killed_at < ITERATIONS
+
+    # resume, then stop it with SIGTERM (to mpiexec, which forwards it to the ranks)
+    process = start_and_wait_for(
+        command(run_dir, f"resume={run_dir}"),
+        tmp_path,
+        checkpoints / f"ckpt_{killed_at + 10:08d}.pt",
+    )
+    process.send_signal(signal.SIGTERM)
+    output, _ = process.communicate(timeout=60)
+    assert process.returncode != 0
+    assert "stopped early: received SIGTERM" in output, output
+    log = (run_dir / "train.log").read_text()
+    frames = killed_at * 16
+    assert (
+        f"resumed from {checkpoints / f'ckpt_{killed_at:08d}.pt'} at iteration {killed_at} "
+        f"({frames} frames, buffer {frames})" in log
+    )  # counters and buffer restored
+    stopped_at = final_state(run_dir)["counters"]["iteration"]
+    assert killed_at + 10 <= stopped_at <= ITERATIONS
+
+    result = run(command(run_dir, "resume=true"), tmp_path)  # the newest run: this one
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert f"at iteration {stopped_at} " in (run_dir / "train.log").read_text()
+
+    resumed, uninterrupted = final_state(run_dir), final_state(reference_dir)
+    counters = ("iteration", "frames", "episodes", "updates")
+    assert [resumed["counters"][k] for k in counters] == [
+        uninterrupted["counters"][k] for k in counters
+    ]
+    assert resumed["history"] == uninterrupted["history"]  # every evaluation, same numbers
+    for key, value in uninterrupted["q_network"].items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(resumed["q_network"][key], value), key
+    for key, value in uninterrupted["loss"].items():  # online and target networks
+        assert torch.equal(resumed["loss"][key], value), key
+    assert same(resumed["replay_buffer"], uninterrupted["replay_buffer"])  # contents and cursor
+    assert same(resumed["optimizer"], uninterrupted["optimizer"])
+
+
+def same(a, b) -> bool:
+    """Recursive equality of nested dicts, lists, tensors and tensordicts."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return torch.equal(a, b)
+    if hasattr(a, "to_dict") and hasattr(b, "to_dict"):
+        return same(a.to_dict(), b.to_dict())
+    return a == b
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("foo=1", "unknown key 'foo'"),
+        ("optim.lr=abc", "'optim.lr'"),
+        ("collector.frames_per_batch=many", "'collector.frames_per_batch'"),
+        ("+loss.bogus=1", "unknown key 'loss.bogus'"),
+    ],
+)
+def test_bad_config_is_a_one_line_error_on_every_rank(tmp_path, override, message):
+    started = time.monotonic()
+    result = run([str(MPIEXEC), "-n", "2", TRAIN, override], tmp_path, timeout=120)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: bad config:"), result.stderr
+    assert message in lines[0]
+    assert time.monotonic() - started < 120
+    assert not list(tmp_path.iterdir())  # nothing was run or written
+
+
+def test_eval_command_tables_a_trained_run(reference, tmp_path):
+    """``physicsrl-eval run=<run dir>`` under 2 ranks: table printed once, CSVs and the
+    learning curve in its own run directory."""
+    _, run_dir, _ = reference
+    out = tmp_path / "eval"
+    arguments = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={run_dir}"]
+    result = run([*arguments, f"hydra.run.dir={out}"], tmp_path, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.count("greedy DQN") == 1
+    assert f"ckpt_{ITERATIONS:08d}.pt (iteration {ITERATIONS}" in result.stdout
+    for name in ("eval.csv", "eval_summary.csv", "learning_curve.png"):
+        assert (out / name).exists(), name
+    rows = (out / "eval.csv").read_text().splitlines()
+    assert rows[0].startswith("policy,seed,return,length") and len(rows) == 1 + 10
