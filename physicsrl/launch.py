@@ -74,8 +74,8 @@ def relaunch(overrides: list[str]) -> None:
     os.execv(command[0], command)
 
 
-def run_hydra(config_name: str, task: Callable, overrides: list[str]) -> None:
-    """Run ``task(cfg)`` as a Hydra app with ``overrides`` on every rank of COMM_WORLD."""
+def run_hydra(config_name: str, task: Callable, arguments: list[str]) -> None:
+    """Run ``task(cfg)`` as a Hydra app with command-line ``arguments`` on every rank."""
     import hydra
     from mpi4py import MPI
     from omegaconf import OmegaConf
@@ -87,10 +87,15 @@ def run_hydra(config_name: str, task: Callable, overrides: list[str]) -> None:
     OmegaConf.register_new_resolver(
         "leader_now", lambda pattern: started.strftime(pattern), replace=True
     )
-    overrides = [f"hydra.job.name={config_name}", *overrides]  # names the log file
+    # Hydra takes flags first and overrides as one run of positional arguments: add ours there.
+    from hydra._internal.utils import get_args_parser
+
+    parsed, unknown = get_args_parser().parse_known_args(arguments)
+    given = parsed.overrides + [u for u in unknown if not u.startswith("-")]
+    flags = [argument for argument in arguments if argument not in given]
+    extra = [f"hydra.job.name={config_name}"]  # names the log file
     if comm.rank != 0:
-        overrides = [
-            *overrides,
+        extra += [
             "hydra.output_subdir=null",
             "hydra/job_logging=disabled",
             "hydra/hydra_logging=disabled",
@@ -100,7 +105,7 @@ def run_hydra(config_name: str, task: Callable, overrides: list[str]) -> None:
         with abort_on_error(comm):
             task(cfg)
 
-    sys.argv = [sys.argv[0], *overrides]
+    sys.argv = [sys.argv[0], *flags, *given, *extra]
     hydra.main(config_path=CONFIGS, config_name=config_name, version_base=None)(guarded)()
 
 
