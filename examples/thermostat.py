@@ -1,0 +1,98 @@
+"""Your own task in under 100 lines: a thermostat on the heat equation.
+
+A plate obeys du/dt = lap(u) + f with u = 0 on the boundary. Every 0.1 time units the agent
+switches a heater off (f = 0) or on (f = heat); it is paid -|mean temperature - target| per
+step. The simulator lives on every rank; the leader trains DQN on it:
+
+    python examples/thermostat.py                  # 1 rank
+    mpiexec -n 2 python examples/thermostat.py     # the same training, the solve on 2 ranks
+"""
+
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from physicsrl.builders import make_q_network
+from physicsrl.coordinated import Coordinator, parallel
+from physicsrl.dojo import Dojo
+from physicsrl.envs import PhysicsEnv, Quadrants, Reward, SquareMesh, Task, Transition
+from physicsrl.envs.baselines import Constant
+from physicsrl.fem import HeatEnvironment
+from physicsrl.fem.integrals import WeightedIntegrals, form_rows
+
+
+@dataclass(frozen=True)
+class Thermostat:
+    mesh: SquareMesh = SquareMesh(cells=16, extent=1.0)
+    dt: float = 0.02
+    interval: float = 0.1  # time between decisions
+    heat: float = 40.0  # f when the heater is on
+    max_steps: int = 20
+
+
+class ThermostatTask(Task):
+    """Simulator side: one parallel call per reset and per step, on every rank."""
+
+    name, n_actions, events = "thermostat", 2, frozenset({"mean"})
+
+    def __init__(self, coordinator: Coordinator, config: Thermostat):
+        self.config, self.max_steps, self.observation = config, config.max_steps, Quadrants()
+        domain = config.mesh.create(coordinator.comm)
+        self.simulator = HeatEnvironment(coordinator, domain, dt=config.dt, u_D=0.0)
+        self.register_coordinator(coordinator)
+        V = self.simulator.V
+        self.integrals = WeightedIntegrals(V, np.vstack([form_rows(V, [1.0]), Quadrants().rows(V)]))
+        self.area = (2 * config.mesh.extent) ** 2
+
+    def draw(self, rng: np.random.Generator) -> tuple[float]:
+        return (float(rng.uniform(0.0, 2.0)),)  # the starting temperature, drawn on the leader
+
+    @parallel
+    def reset(self, start: float) -> np.ndarray:
+        self.simulator.reset()
+        self.simulator.set_initial_condition(start)
+        self.steps = 0
+        return self.integrals(self.simulator.u_n())[1:]
+
+    @parallel
+    def step(self, action: int) -> Transition:
+        self.simulator.set_source(self.config.heat * action)
+        self.simulator.advance_time(self.config.interval)
+        self.steps += 1
+        values = self.integrals(self.simulator.u_n())
+        mean = {"mean": float(values[0]) / self.area}
+        return Transition(values[1:], mean, self.steps, terminated=self.steps >= self.max_steps)
+
+
+@dataclass(frozen=True)
+class KeepTarget(Reward):
+    name: str = "keep_target"
+    events = frozenset({"mean"})
+    target: float = 1.0
+
+    def __call__(self, events) -> float:
+        return -abs(events["mean"] - self.target)
+
+
+def main(iterations: int) -> dict[str, float]:
+    coordinator = Coordinator()
+    env = PhysicsEnv(ThermostatTask(coordinator, Thermostat()), KeepTarget(), seed=0)
+    with coordinator:
+        if coordinator.is_leader():
+            torch.manual_seed(0)
+            dojo = Dojo(make_q_network(env), env, frames_per_batch=20, learning_starts=100)
+            dojo.train(iterations)
+            policies = {"greedy DQN": None, "heater off": Constant(0), "heater on": Constant(1)}
+            seeds = range(10**9, 10**9 + 5)
+            returns = {
+                name: dojo.evaluate(policy, seeds, record=False)["return"]
+                for name, policy in policies.items()
+            }
+            print(", ".join(f"{name}: {value:.2f}" for name, value in returns.items()))
+            return returns
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 60)
