@@ -224,13 +224,13 @@ def test_setters_reset_and_divergence():
 
 
 def _rhs_vectors(domain, degree=1):
-    """The right-hand side vectors of the numpy kernel and of the UFL form for random u, w
-    and a random piecewise constant I_app (both paths on the same mesh and values)."""
+    """The right-hand side vectors of the C kernel, the numpy kernel and the UFL form for
+    random u, w and a random piecewise constant I_app (all paths on the same mesh and values)."""
     from dolfinx import fem
 
     V = fem.functionspace(domain, ("Lagrange", degree))
     vectors = []
-    for rhs in ("numpy", "form"):
+    for rhs in ("compiled", "numpy", "form"):
         ms = MonodomainMitchellSchaeffer(Coordinator(), domain, V, rhs=rhs, dt=0.05)
         u, w, current = ms.u_n(), ms.w_n(), ms._I_app
         state = np.random.default_rng(7)
@@ -238,7 +238,9 @@ def _rhs_vectors(domain, degree=1):
         w.x.array[:] = state.uniform(0.0, 1.0, w.x.array.size)
         current.x.array[:] = state.uniform(0.0, 50.0, current.x.array.size)
         b = np.zeros(ms.problem._b.array.size)
-        if rhs == "numpy":
+        if rhs == "compiled":
+            assert ms.rhs._kernels is not None  # a C compiler is part of the test environment
+        if rhs != "form":
             ms.rhs(b)
         else:
             fem.assemble_vector(b, ms.problem._L)
@@ -256,24 +258,27 @@ def _rhs_vectors(domain, degree=1):
         (mesh.CellType.triangle, 2, True),
     ],
 )
-def test_numpy_rhs_equals_the_form_rhs(cell, degree, perturb):
-    """The numpy quadrature kernel (default ``rhs="numpy"``) computes the same quadrature sum
-    as DOLFINx's assembly of the UFL form (``rhs="form"``): equal to 1e-12 relative on
-    straight and distorted quadrilaterals and triangles, degrees 1 and 2."""
+def test_kernel_rhs_equals_the_form_rhs(cell, degree, perturb):
+    """The C kernel (default ``rhs="compiled"``) and the numpy kernel (``rhs="numpy"``)
+    compute the same quadrature sum as DOLFINx's assembly of the UFL form (``rhs="form"``):
+    equal to 1e-12 relative on straight and distorted quadrilaterals and triangles, degrees 1
+    and 2."""
     domain = mesh.create_rectangle(MPI.COMM_WORLD, [[0, 0], [2, 1]], [7, 5], cell)
     if perturb:
         x = domain.geometry.x
         x[:, 0] += 0.03 * np.sin(3 * x[:, 0]) * np.sin(np.pi * x[:, 1])
         x[:, 1] += 0.02 * np.sin(5 * x[:, 0]) * np.sin(np.pi * x[:, 1])
-    ours, theirs = _rhs_vectors(domain, degree)
+    compiled, numpy, theirs = _rhs_vectors(domain, degree)
     scale = np.abs(theirs).max()
     assert scale > 0
-    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(compiled, theirs, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(numpy, theirs, rtol=0, atol=1e-12 * scale)
 
 
-def test_numpy_and_form_paths_give_the_same_simulation():
+def test_kernel_and_form_paths_give_the_same_simulation():
     """The report's reentry set-up on 20 x 20 cells, 60 steps (30 with the stimulus): u and w
-    agree to 1e-12 between the numpy kernel and the form assembly."""
+    agree to 1e-12 between the C kernel (with the compiled gate update), the numpy kernel and
+    the form assembly."""
     domain = physicsrl.fem.default_ms_mesh(n=20)
     models = [
         MonodomainMitchellSchaeffer(
@@ -284,16 +289,41 @@ def test_numpy_and_form_paths_give_the_same_simulation():
             I_app=lambda x: np.where((np.abs(x[0]) < 5) & (x[1] > 0), 50.0, 0.0),
             rhs=rhs,
         )
-        for rhs in ("numpy", "form")
+        for rhs in ("compiled", "numpy", "form")
     ]
     for ms in models:
         with ms.coordinator:
             ms.advance_time(30 * DT)
             ms.set_I_app(0.0)
             ms.advance_time(30 * DT)
-    a, b = models
-    assert np.ptp(a.u_n().x.array) > 0.5
-    np.testing.assert_allclose(a.u_n().x.array, b.u_n().x.array, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(a.w_n().x.array, b.w_n().x.array, rtol=0, atol=1e-12)
+    reference = models[-1]
+    assert np.ptp(reference.u_n().x.array) > 0.5
+    for ms in models[:-1]:
+        np.testing.assert_allclose(ms.u_n().x.array, reference.u_n().x.array, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ms.w_n().x.array, reference.w_n().x.array, rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="rhs"):
         MonodomainMitchellSchaeffer(Coordinator(), domain, rhs="fortran")
+
+
+def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path):
+    """If the C kernels cannot be built, ``rhs="compiled"`` warns once and falls back to the
+    numpy kernel and gate update, with the same right-hand side."""
+    from physicsrl.fem import kernels
+
+    def no_compiler(name, target):
+        raise OSError("no C compiler")
+
+    monkeypatch.setattr(kernels, "_loaded", False)
+    monkeypatch.setattr(kernels, "_module", None)
+    monkeypatch.setattr(kernels, "_build", no_compiler)
+    monkeypatch.setenv("PHYSICSRL_CACHE_DIR", str(tmp_path))  # no cached module there
+    domain = mesh.create_unit_square(MPI.COMM_WORLD, 4, 4, mesh.CellType.quadrilateral)
+    with pytest.warns(RuntimeWarning, match="C kernels unavailable"):
+        ms = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=0.2, w0=1.0, I_app=3.0)
+    assert ms.rhs._kernels is None and ms._kernels is None
+    with ms.coordinator:
+        ms.advance_time(0.03)
+    u, w = 0.2, 1.0
+    du, dw = reaction(u, w)
+    np.testing.assert_allclose(ms.u_n().x.array, u + DT * (du + 3.0), rtol=1e-9)
+    np.testing.assert_allclose(ms.w_n().x.array, w + DT * dw, rtol=1e-12)

@@ -55,14 +55,31 @@ DEFAULT_PETSC_OPTIONS = {
     "sub_pc_type": "icc",
     "ksp_rtol": 1e-10,
 }
-"""CG + block-Jacobi/ICC(0); the relative tolerance is on the preconditioned residual and
-``||b||``. For the mass-dominated matrices of small time steps this takes a few iterations: on
-the Mitchell-Schaeffer benchmark (``physicsrl-bench ms``, dt = 0.03) 1.2 per step on 60 x 60
-cells and 3 on 1000 x 1000, warm-started. It is the default at every size: measured in one run
-on 60 x 60 (one rank), a solve took <= 0.3 ms against 0.45 ms for PETSc's Cholesky and 0.30 ms
-for its LU (factorised once, ``preonly``), and on 250 x 250 2.7 ms against 8.3 ms for both;
-CG + Jacobi needs 16-20 iterations and is 2-3x slower. A looser ``ksp_rtol`` saves at most one
-iteration in three and costs accuracy (the 1 vs 2 rank comparison to 1e-6 after 60 steps)."""
+"""CG + block Jacobi with ICC(0) per rank (on one rank plain ICC(0)); warm-started from u^n,
+the relative tolerance is on the preconditioned residual and ``||b||``. The Mitchell-Schaeffer
+model replaces the preconditioner by Jacobi on more than one rank
+(:data:`physicsrl.fem.monodomain.PARALLEL_PETSC_OPTIONS`; the heat equation keeps block
+Jacobi/ICC, whose 1 vs 2 rank agreement to 1e-9 is tested). Chosen by measurement on the
+Mitchell-Schaeffer benchmark (``physicsrl-bench ms``, dt = 0.03, idle 2-core machine, ms per
+solve):
+
+- one rank: ICC(0) takes 1 iteration per step on 60 x 60 cells, 2 on 250 x 250 and 3 on
+  1000 x 1000 and 2000 x 2000 (145 and 586 ms); CG + Jacobi needs 14-16 and 6-7 iterations
+  (258 and 528 ms), CG + SOR/Eisenstat 5-9. PETSc's Cholesky and LU (factorised once) were
+  slower at every size measured (60 x 60: 0.45 and 0.30 ms against <= 0.3 ms; 250 x 250:
+  8.3 ms against 2.7 ms). Plain ICC saves ~30 us per solve on 60 x 60 over block Jacobi with
+  one block. RCM or nested-dissection orderings and ICC(1) did not save an iteration.
+- two ranks: block Jacobi with ICC(0) per rank loses ICC's accuracy at the partition
+  boundary (a row of the Q1 mass matrix has off-diagonal entries summing to 5/4 of its diagonal): 12
+  iterations instead of 3 at 1000 x 1000 (205-242 ms), 8 at 2000 x 2000 (658 ms); additive
+  Schwarz with overlap 1-4 still 6 (190 ms). CG + Jacobi, whose iterations are only a
+  matrix-vector product and vector updates: 15 iterations, 140 ms, and 6-7 iterations,
+  291 ms.
+
+A looser ``ksp_rtol`` saves at most one ICC iteration and costs accuracy (rtol 1e-8: errors of
+1e-7 per step; the tests compare 1 and 2 ranks to 1e-6 after 60 steps). Starting from the
+extrapolation 2 u^n - u^{n-1} or from u^n plus the reaction's forward-Euler increment saved
+no iteration."""
 
 _prefixes = itertools.count()
 
@@ -78,7 +95,6 @@ class TimeProblem:
         The function space of the unknown (default: Lagrange degree 1 on ``mesh``).
     petsc_options:
         PETSc options of the linear solver, updating :data:`DEFAULT_PETSC_OPTIONS`.
-
     Attributes
     ----------
     V, u_n, dt:
@@ -90,7 +106,12 @@ class TimeProblem:
         Seconds spent assembling right-hand sides (``"rhs"``) and solving (``"solve"``).
     """
 
-    def __init__(self, mesh, V: fem.FunctionSpace | None = None, petsc_options: dict | None = None):
+    def __init__(
+        self,
+        mesh,
+        V: fem.FunctionSpace | None = None,
+        petsc_options: dict | None = None,
+    ):
         self.mesh = mesh
         self.V = fem.functionspace(mesh, ("Lagrange", 1)) if V is None else V
         if self.V.mesh is not mesh:
@@ -116,7 +137,10 @@ class TimeProblem:
         self._u_petsc = self.u_n.x.petsc_vec
         self._dt_value = self.dt._cpp_object.value  # 0-d view of the constant's storage
         self._ksp = PETSc.KSP().create(mesh.comm)
-        self._configure_solver({**DEFAULT_PETSC_OPTIONS, **(petsc_options or {})})
+        defaults = dict(DEFAULT_PETSC_OPTIONS)
+        if mesh.comm.size == 1:  # ICC itself, without the one-block block-Jacobi wrapper
+            defaults["pc_type"] = defaults.pop("sub_pc_type")
+        self._configure_solver({**defaults, **(petsc_options or {})})
 
     def _configure_solver(self, options: dict) -> None:
         prefix = f"physicsrl_time_problem_{next(_prefixes)}_"
