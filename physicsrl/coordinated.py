@@ -94,6 +94,7 @@ def _fail(comm: MPI.Comm, where: str) -> None:
     """Print the current exception's traceback and end every rank of ``comm``."""
     sys.stderr.write(f"[rank {comm.rank}] {where}:\n{traceback.format_exc()}")
     sys.stderr.flush()
+    time.sleep(0.2)  # let the launcher forward the traceback before Abort tears the job down
     comm.Abort(1)
     os._exit(1)  # MPICH's Abort can return once it has told the process manager
 
