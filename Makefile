@@ -25,8 +25,10 @@ train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 test: setup  ## run the whole test suite (unit and MPI tests)
 	$(BIN)/python -m pytest
 
-bench: setup  ## run the benchmarks of benchmarks/ and write their results files
+bench: setup  ## run the benchmarks, beside their baselines, into benchmarks/results/
 	$(BIN)/python benchmarks/ping_scaling.py
+	$(BIN)/python benchmarks/ms_scaling.py
+	$(BIN)/physicsrl-bench env hydra.run.dir=benchmarks/results/env
 
 lint: setup  ## ruff
 	$(BIN)/ruff check physicsrl tests benchmarks examples
