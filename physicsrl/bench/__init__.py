@@ -1,1 +1,1 @@
-"""Benchmarks behind `physicsrl-bench`: each module has `run(cfg) -> list[dict]` (rows of a table)."""
+"""Benchmarks behind `physicsrl-bench`: each module has `run(cfg) -> list[dict]` (table rows)."""
