@@ -10,6 +10,18 @@ from pathlib import Path
 import pytest
 
 MPIEXEC = Path(sys.executable).with_name("mpiexec")
+
+# A small ATP task: 20 x 20 cells, intervals of 5 time units, 3 decisions + 2 extra waits
+# (~0.3 s an episode), for tests where the figures of the report are not what is tested.
+SMALL_ATP = [
+    "env.mesh.cells=20",
+    "env.reset.stimulus_time=2",
+    "env.reset.rest_time=3",
+    "env.decision_interval=5",
+    "env.shock.duration=2.5",
+    "env.max_decisions=3",
+    "env.extra_waits=2",
+]
 ROOT = Path(__file__).resolve().parent.parent
 
 

@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, run_mpi
+from conftest import ROOT, SMALL_ATP, run_mpi
 from gymnasium.utils.env_checker import check_env
 
 from physicsrl.coordinated import Coordinator
@@ -20,17 +20,7 @@ SCRIPT = "tests/mpi_scripts/envs_determinism.py"
     "groups, overrides",
     [
         (("heat", "quadrants", "heat_stop"), ["env.mesh.cells=16"]),
-        (
-            ("ms", "catheter", "atp"),
-            [
-                "env.mesh.cells=20",
-                "env.reset.stimulus_time=2",
-                "env.reset.rest_time=3",
-                "env.decision_interval=5",
-                "env.shock.duration=2.5",
-                "env.max_decisions=3",
-            ],
-        ),
+        (("ms", "catheter", "atp"), SMALL_ATP),
     ],
 )
 def test_gymnasium_checker(groups, overrides):

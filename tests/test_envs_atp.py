@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 import ufl
+from conftest import SMALL_ATP
 from dolfinx import fem, mesh
 from mpi4py import MPI
 from tensordict import TensorDict
@@ -18,20 +19,10 @@ from physicsrl.envs import ATPReward, Catheter, load_config, make_env
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule, best_single_shock, evaluate
 from physicsrl.fem.integrals import WeightedIntegrals
 
-# 20 x 20 cells, intervals of 5 time units, 3 decisions + 2 extra waits: ~0.3 s an episode.
-SMALL = [
-    "env.mesh.cells=20",
-    "env.reset.stimulus_time=2",
-    "env.reset.rest_time=3",
-    "env.decision_interval=5",
-    "env.shock.duration=2.5",
-    "env.max_decisions=3",
-    "env.extra_waits=2",
-]
-
 
 def atp_env(*overrides, seed=0):
-    return make_env(load_config("ms", "catheter", "atp", [*SMALL, *overrides], seed), Coordinator())
+    config = load_config("ms", "catheter", "atp", [*SMALL_ATP, *overrides], seed)
+    return make_env(config, Coordinator())
 
 
 def act(env, action):
