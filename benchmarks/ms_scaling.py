@@ -19,11 +19,8 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import shlex
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -31,24 +28,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from bench_run import bench_record  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def measure(n: int, ranks: int, steps: int, baseline: bool) -> dict:
-    bench = Path(sys.executable).with_name("physicsrl-bench")
-    with tempfile.TemporaryDirectory() as directory:
-        command = [
-            str(bench),
-            "ms",
-            f"grid.n={n}",
-            f"steps={steps}",
-            f"baseline={str(baseline).lower()}",
-            f"mpi.ranks={ranks}",
-            f"hydra.run.dir={directory}",
-        ]
-        subprocess.run(command, check=True, capture_output=True, text=True)
-        return json.loads((Path(directory) / "ms.json").read_text())
 
 
 def fit(ranks: np.ndarray, times: np.ndarray) -> tuple[float, float]:
@@ -69,7 +51,13 @@ def main() -> None:
     rows, goals = [], []
     for n in args.grids:
         for ranks in args.ranks:
-            record = measure(n, ranks, args.steps, args.baseline)
+            record = bench_record(
+                "ms",
+                f"grid.n={n}",
+                f"steps={args.steps}",
+                f"baseline={str(args.baseline).lower()}",
+                f"mpi.ranks={ranks}",
+            )
             rows += record["rows"]
             goals += [
                 f"{n}x{n}, {ranks} ranks: {'met' if g['met'] else 'MISSED'}: {g['goal']}"

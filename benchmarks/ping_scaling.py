@@ -15,11 +15,8 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import shlex
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -27,25 +24,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from bench_run import bench_record  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ["physicsrl", "report design", "floor (Bcast 16 B)"]
 REPORT = {1: 1.961, 2: 2.517, 4: 3.410, 8: 5.353}  # Table 1, microseconds per call
-
-
-def measure(ranks: int, calls: int, repeats: int) -> dict:
-    bench = Path(sys.executable).with_name("physicsrl-bench")
-    with tempfile.TemporaryDirectory() as directory:
-        command = [
-            str(bench),
-            "ping",
-            f"calls={calls}",
-            f"repeats={repeats}",
-            f"mpi.ranks={ranks}",
-            f"hydra.run.dir={directory}",
-        ]
-        subprocess.run(command, check=True, capture_output=True, text=True)
-        return json.loads((Path(directory) / "ping.json").read_text())
 
 
 def main() -> None:
@@ -57,7 +40,9 @@ def main() -> None:
 
     rows, goals = [], []
     for ranks in args.ranks:
-        record = measure(ranks, args.calls, args.repeats)
+        record = bench_record(
+            "ping", f"calls={args.calls}", f"repeats={args.repeats}", f"mpi.ranks={ranks}"
+        )
         rows += record["rows"]
         goals += [
             f"{ranks} ranks: {'met' if g['met'] else 'MISSED'}: {g['goal']}"
