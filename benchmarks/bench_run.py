@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -16,3 +18,22 @@ def bench_record(name: str, *overrides: str) -> dict:
         command = [str(bench), name, *overrides, f"hydra.run.dir={directory}"]
         subprocess.run(command, check=True, capture_output=True, text=True)
         return json.loads((Path(directory) / f"{name}.json").read_text())
+
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def save_results(name: str, rows: list[dict], figure, lines: list[str]) -> None:
+    """Write results/NAME.csv (rows), NAME.png (figure) and NAME.txt (the command, then
+    ``lines``), and print the summary."""
+    RESULTS.mkdir(exist_ok=True)
+    with open(RESULTS / f"{name}.csv", "w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
+        writer.writeheader()
+        writer.writerows(rows)
+    figure.tight_layout()
+    figure.savefig(RESULTS / f"{name}.png", dpi=120)
+    command = shlex.join(["python", *sys.argv])
+    summary = "\n".join([f"command: {command}", *lines])
+    (RESULTS / f"{name}.txt").write_text(summary + "\n")
+    print(summary)

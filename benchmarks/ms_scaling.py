@@ -18,19 +18,13 @@ measure time-sharing, not the library.
 from __future__ import annotations
 
 import argparse
-import csv
-import shlex
-import sys
-from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_run import bench_record  # noqa: E402
-
-RESULTS = Path(__file__).resolve().parent / "results"
+from bench_run import bench_record, save_results  # noqa: E402
 
 
 def fit(ranks: np.ndarray, times: np.ndarray) -> tuple[float, float]:
@@ -64,12 +58,6 @@ def main() -> None:
                 for g in record["goals"]
             ]
             print(f"{n}x{n}, {ranks} ranks: {record['rows'][0]['step_ms']} ms/step", flush=True)
-    RESULTS.mkdir(exist_ok=True)
-    with open(RESULTS / "ms.csv", "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
-        writer.writeheader()
-        writer.writerows(rows)
-
     figure, axes = plt.subplots(figsize=(6, 4))
     lines = []
     for n in args.grids:
@@ -96,13 +84,7 @@ def main() -> None:
     )
     axes.set_xticks(args.ranks)
     axes.legend()
-    figure.tight_layout()
-    figure.savefig(RESULTS / "ms.png", dpi=120)
-
-    command = shlex.join(["python", "benchmarks/ms_scaling.py", *sys.argv[1:]])
-    summary = "\n".join([f"command: {command}", *lines, *goals])
-    (RESULTS / "ms.txt").write_text(summary + "\n")
-    print(summary)
+    save_results("ms", rows, figure, [*lines, *goals])
 
 
 if __name__ == "__main__":

@@ -14,19 +14,14 @@ measure time-sharing, not the library.
 from __future__ import annotations
 
 import argparse
-import csv
-import shlex
-import sys
-from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_run import bench_record  # noqa: E402
+from bench_run import bench_record, save_results  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ["physicsrl", "report design", "floor (Bcast 16 B)"]
 REPORT = {1: 1.961, 2: 2.517, 4: 3.410, 8: 5.353}  # Table 1, microseconds per call
 
@@ -48,12 +43,6 @@ def main() -> None:
             f"{ranks} ranks: {'met' if g['met'] else 'MISSED'}: {g['goal']}"
             for g in record["goals"]
         ]
-    RESULTS.mkdir(exist_ok=True)
-    with open(RESULTS / "ping.csv", "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
-        writer.writeheader()
-        writer.writerows(rows)
-
     figure, axes = plt.subplots(figsize=(6, 4))
     fits = []
     for method in METHODS:
@@ -71,13 +60,7 @@ def main() -> None:
         title="Parallel call overhead (physicsrl-bench ping)",
     )
     axes.legend()
-    figure.tight_layout()
-    figure.savefig(RESULTS / "ping.png", dpi=120)
-
-    command = shlex.join(["python", "benchmarks/ping_scaling.py", *sys.argv[1:]])
-    summary = "\n".join([f"command: {command}", *fits, *goals])
-    (RESULTS / "ping.txt").write_text(summary + "\n")
-    print(summary)
+    save_results("ping", rows, figure, [*fits, *goals])
 
 
 if __name__ == "__main__":

@@ -36,7 +36,7 @@ def run_mpi(ranks: int, *args: str, timeout: float = 120, env: dict | None = Non
         capture_output=True,
         text=True,
         timeout=timeout,
-        env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT), **(env or {})},
         cwd=ROOT,
     )
     if check and result.returncode != 0:

@@ -10,18 +10,10 @@ from mpi4py import MPI
 from physicsrl.coordinated import Coordinator, abort_on_error
 from physicsrl.envs import load_config, make_env
 from physicsrl.envs.baselines import RandomActions
+from tests.conftest import SMALL_ATP  # run_mpi puts the repository root on PYTHONPATH
 
 HEAT = ["env.mesh.cells=16", "env.max_steps=4"]
-ATP = [
-    "env.mesh.cells=20",
-    "env.reset.stimulus_time=2",
-    "env.reset.rest_time=3",
-    "env.decision_interval=5",
-    "env.shock.duration=2.5",
-    "env.max_decisions=3",
-    "env.extra_waits=2",
-    "observation.normalise=true",
-]
+ATP = [*SMALL_ATP, "observation.normalise=true"]
 
 
 def episodes(env, seeds):
