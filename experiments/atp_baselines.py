@@ -1,74 +1,94 @@
 """Evaluate the ATP baseline policies on held-out seeds: the bar a trained agent must clear.
 
-    mpiexec -n 2 python experiments/atp_baselines.py [--seeds 10] [--out experiments/results]
+    python experiments/atp_baselines.py [--experiment atp] [--seeds 20] [--select-seeds 5]
+                                        [key=value ...]
 
-Writes ``atp_baselines.csv`` (one row per policy: mean return, success rate, mean shocks over
-the seeds) and ``atp_baselines.txt`` (the command) on the leader. Seeds are the training
-config's held-out evaluation seeds (1000000000, 1000000001, ...).
+The env is the training preset's (``physicsrl-train +experiment=EXPERIMENT``), composed by
+Hydra exactly as the training run composes it. Policies: never shock, always shock, random
+(p = 0.5), shock every 4th decision, and the best single shock: the decision of the one shock
+is chosen by mean return on the first ``--select-seeds`` seeds (every decision tried), then
+evaluated on all seeds. Seeds are the held-out evaluation seeds 1000000000, 1000000001, ...
+
+Writes, on the leader, ``<experiment>_baselines.csv`` (one row per policy: mean return, success
+rate, mean shocks and decisions), ``<experiment>_baselines_per_seed.csv`` and
+``<experiment>_baselines.txt`` (the command and commit).
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
+from physicsrl import builders
+from physicsrl.cli.eval import write_csv
+from physicsrl.cli.train import compose
 from physicsrl.coordinated import Coordinator, abort_on_error
-from physicsrl.envs import load_config, make_env
-from physicsrl.envs.baselines import Constant, EveryKth, RandomActions
+from physicsrl.dojo import mean_metrics, episode_metrics
+from physicsrl.envs.baselines import Constant, EveryKth, RandomActions, Schedule
 
-POLICIES = {
-    "never shock": Constant(0),
-    "always shock": Constant(1),
-    "every 4th": EveryKth(4),
-    "random (p=0.5)": RandomActions(0.5, seed=0),
-}
+FIRST_SEED = 1_000_000_000
 
 
 def episode(env, policy, seed: int) -> dict:
+    """One episode of ``policy`` from the env seeded with ``seed``: return, success, shocks."""
     env.set_seed(seed)
     rollout = env.rollout(env.task.max_steps + 1, policy, break_when_any_done=True)
-    return {
-        "return": float(rollout["next", "reward"].sum()),
-        "success": bool(rollout["next", "success"].any()),
-        "shocks": int(rollout["action"].sum()),
-    }
+    metrics = episode_metrics(rollout, {"shocks": 1})
+    return {k: metrics[k] for k in ("return", "success", "shocks", "length")}
+
+
+def best_single_shock(env, seeds: list[int]) -> int:
+    """The decision (0, 1, ...) whose single shock has the best mean return over ``seeds``."""
+    means = {}
+    for step in range(env.task.config.max_decisions):
+        means[step] = mean_metrics([episode(env, Schedule([step]), s) for s in seeds])["return"]
+        print(f"single shock at decision {step}: mean return {means[step]:.1f}", flush=True)
+    return max(means, key=means.get)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--experiment", default="atp", help="the preset: atp | atp_wide")
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--select-seeds", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
     args = parser.parse_args()
+    cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
     coordinator = Coordinator()
-    env = make_env(load_config("ms", "catheter", "atp"), coordinator)
-    seeds = range(1_000_000_000, 1_000_000_000 + args.seeds)
+    env = builders.make_env(cfg, coordinator)
+    seeds = list(range(FIRST_SEED, FIRST_SEED + args.seeds))
     with abort_on_error(), coordinator:
-        if coordinator.is_leader():
-            rows = []
-            for name, policy in POLICIES.items():
-                runs = [episode(env, policy, seed) for seed in seeds]
-                rows.append(
-                    {
-                        "policy": name,
-                        "return": round(float(np.mean([r["return"] for r in runs])), 2),
-                        "success": float(np.mean([r["success"] for r in runs])),
-                        "shocks": float(np.mean([r["shocks"] for r in runs])),
-                        "seeds": len(runs),
-                    }
-                )
-                print(rows[-1], flush=True)
-            args.out.mkdir(parents=True, exist_ok=True)
-            with open(args.out / "atp_baselines.csv", "w", newline="") as stream:
-                writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
-                writer.writeheader()
-                writer.writerows(rows)
-            command = shlex.join(["mpiexec", "-n", str(coordinator.size), "python", *sys.argv])
-            (args.out / "atp_baselines.txt").write_text(command + "\n")
+        if not coordinator.is_leader():
+            return
+        step = best_single_shock(env, seeds[: args.select_seeds])
+        policies = {
+            "never shock": Constant(0),
+            "always shock": Constant(1),
+            "random (p=0.5)": RandomActions(0.5, seed=0),
+            "every 4th": EveryKth(4),
+            f"single shock at decision {step}": Schedule([step]),
+        }
+        rows, per_seed = [], []
+        for name, policy in policies.items():
+            runs = [{"policy": name, "seed": s, **episode(env, policy, s)} for s in seeds]
+            per_seed.extend(runs)
+            mean = mean_metrics([{k: v for k, v in r.items() if k not in ("policy", "seed")} for r in runs])
+            rows.append({"policy": name, **{k: round(v, 3) for k, v in mean.items()}})
+            print(rows[-1], flush=True)
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_csv(args.out / f"{args.experiment}_baselines.csv", rows)
+        write_csv(args.out / f"{args.experiment}_baselines_per_seed.csv", per_seed)
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
+        ).stdout.strip()
+        command = shlex.join(["python", *sys.argv])
+        (args.out / f"{args.experiment}_baselines.txt").write_text(
+            f"{command}\ncommit {commit or 'unknown'}\n"
+        )
 
 
 if __name__ == "__main__":

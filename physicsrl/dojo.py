@@ -80,7 +80,7 @@ def episode_metrics(rollout: TensorDictBase, action_counts: dict | None = None) 
     return metrics
 
 
-def _mean(rows: list[dict]) -> dict:
+def mean_metrics(rows: list[dict]) -> dict:
     keys = dict.fromkeys(k for row in rows for k in row)
     return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}
 
@@ -157,10 +157,10 @@ class Dojo:
         self.q_network = q_network
         self.env = env
         self.loss = loss if loss is not None else builders.make_loss(q_network, env)
-        self.target_updater = target_updater or builders.make_target_updater(self.loss)
-        self.optimizer = optimizer or builders.make_optimizer(self.loss)
-        self.replay_buffer = replay_buffer or builders.make_buffer()
-        self.exploration = exploration or builders.make_exploration(q_network, env)
+        self.target_updater = _given(target_updater, builders.make_target_updater, self.loss)
+        self.optimizer = _given(optimizer, builders.make_optimizer, self.loss)
+        self.replay_buffer = _given(replay_buffer, builders.make_buffer)
+        self.exploration = _given(exploration, builders.make_exploration, q_network, env)
         self.frames_per_batch = int(frames_per_batch)
         self.updates_per_batch = int(updates_per_batch)
         self.learning_starts = int(learning_starts)
@@ -324,7 +324,7 @@ class Dojo:
         (default: the held-out validation seeds); recorded in the history and logs."""
         started = time.perf_counter()
         rows = [self.run_episode(policy or self.q_network, s) for s in seeds or self.eval_seeds]
-        metrics = _mean([{k: v for k, v in row.items() if k != "seed"} for row in rows])
+        metrics = mean_metrics([{k: v for k, v in row.items() if k != "seed"} for row in rows])
         self._add_time("evaluation", time.perf_counter() - started)
         if self._collector is not None and not self.reset_at_each_iter:
             self._collector.reset()  # evaluation moved the env away from the batch in flight
@@ -520,3 +520,9 @@ class Dojo:
         clash = [s for s in self.eval_seeds if self.train_seed(0) <= s <= last]
         if clash and self.reset_at_each_iter:
             raise ValueError(f"eval seeds {clash[:3]} are also training seeds: choose others")
+
+
+def _given(value, default, *args):
+    """``value``, or ``default(*args)`` when it is None (not ``or``: an empty replay buffer has
+    length 0 and is falsy)."""
+    return value if value is not None else default(*args)

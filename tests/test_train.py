@@ -78,9 +78,11 @@ def test_dojo_learns_a_known_optimum():
     env = ToyChainEnv(coordinator, length=3)
     with coordinator:
         q_network = builders.make_q_network(env, {"hidden": [32, 32]})
+        buffer = builders.make_buffer({"size": 500, "batch_size": 64})
         dojo = Dojo(
             q_network,
             env,
+            replay_buffer=buffer,
             exploration=builders.make_exploration(q_network, env, {"annealing_frames": 500}),
             frames_per_batch=16,
             learning_starts=64,
@@ -89,6 +91,7 @@ def test_dojo_learns_a_known_optimum():
         )
         summary = dojo.train(60)
     assert summary["iteration"] == 60 and summary["frames"] == 960
+    assert dojo.replay_buffer is buffer and len(buffer) == 500  # the given capacity is kept
     assert summary["eval"]["return"] == pytest.approx(ToyChainEnv.optimum)
     assert summary["eval"]["success"] == 1.0
 

@@ -262,9 +262,10 @@ def check_task(cfg) -> None:
 
 # the command line -----------------------------------------------------------------------------
 def with_pairs(overrides: list[str]) -> list[str]:
-    """Add the observation and reward that go with ``env=NAME`` unless they are given."""
+    """Add the observation and reward that go with ``env=NAME`` unless they are given. Without
+    ``env=`` nothing is added: the defaults list or an experiment preset chooses them."""
     chosen = {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in overrides if "=" in o}
-    pair = PAIRS.get(chosen.get("env", "heat"))
+    pair = PAIRS.get(chosen.get("env"))
     extra = []
     if pair is not None:
         for group, option in zip(("observation", "reward"), pair, strict=True):
@@ -331,13 +332,10 @@ def validate_or_exit(config_name: str, overrides: list[str], check=check_values)
 
 
 def main() -> None:
-    overrides = sys.argv[1:]
-    flags = [o for o in overrides if o.startswith("-")]
-    if not flags:
-        overrides = with_pairs(overrides)
+    overrides = with_pairs(sys.argv[1:])
     relaunch(overrides)
     register_schemas()
-    if not flags:
+    if not [o for o in overrides if o.startswith("-")]:
         validate_or_exit("train", overrides)
     run_hydra("train", train, overrides)
 
