@@ -26,7 +26,7 @@ from physicsrl import builders
 from physicsrl.cli.eval import write_csv
 from physicsrl.cli.train import compose
 from physicsrl.coordinated import Coordinator, abort_on_error
-from physicsrl.dojo import mean_metrics, episode_metrics
+from physicsrl.dojo import episode_metrics, mean_metrics
 from physicsrl.envs.baselines import Constant, EveryKth, RandomActions, Schedule
 
 FIRST_SEED = 1_000_000_000
@@ -76,7 +76,8 @@ def main() -> None:
         for name, policy in policies.items():
             runs = [{"policy": name, "seed": s, **episode(env, policy, s)} for s in seeds]
             per_seed.extend(runs)
-            mean = mean_metrics([{k: v for k, v in r.items() if k not in ("policy", "seed")} for r in runs])
+            numbers = [{k: v for k, v in r.items() if k not in ("policy", "seed")} for r in runs]
+            mean = mean_metrics(numbers)
             rows.append({"policy": name, **{k: round(v, 3) for k, v in mean.items()}})
             print(rows[-1], flush=True)
         args.out.mkdir(parents=True, exist_ok=True)
