@@ -6,8 +6,9 @@
 The env is the training preset's (``physicsrl-train +experiment=EXPERIMENT``), composed by
 Hydra exactly as the training run composes it. Policies: never shock, always shock, random
 (p = 0.5), shock every 4th decision, and the best single shock: the decision of the one shock
-is chosen by mean return on the first ``--select-seeds`` seeds (every decision tried), then
-evaluated on all seeds. Seeds are the held-out evaluation seeds 1000000000, 1000000001, ...
+(or none) is chosen by mean return on the first ``--select-seeds`` seeds (every decision
+tried), then evaluated on all seeds. Seeds are the held-out evaluation seeds 1000000000,
+1000000001, ...
 
 Writes, on the leader, ``<experiment>_baselines.csv`` (one row per policy: mean return, success
 rate, mean shocks and decisions), ``<experiment>_baselines_per_seed.csv`` and
@@ -26,10 +27,8 @@ from physicsrl import builders
 from physicsrl.cli.eval import write_csv
 from physicsrl.cli.train import compose
 from physicsrl.coordinated import Coordinator, abort_on_error
-from physicsrl.dojo import episode_metrics, mean_metrics
-from physicsrl.envs.baselines import Constant, EveryKth, RandomActions, Schedule
-
-FIRST_SEED = 1_000_000_000
+from physicsrl.dojo import episode_metrics, held_out_seeds, mean_metrics
+from physicsrl.envs.baselines import Constant, EveryKth, RandomActions, best_single_shock
 
 
 def episode(env, policy, seed: int) -> dict:
@@ -38,15 +37,6 @@ def episode(env, policy, seed: int) -> dict:
     rollout = env.rollout(env.task.max_steps + 1, policy, break_when_any_done=True)
     metrics = episode_metrics(rollout, {"shocks": 1})
     return {k: metrics[k] for k in ("return", "success", "shocks", "length")}
-
-
-def best_single_shock(env, seeds: list[int]) -> int:
-    """The decision (0, 1, ...) whose single shock has the best mean return over ``seeds``."""
-    means = {}
-    for step in range(env.task.config.max_decisions):
-        means[step] = mean_metrics([episode(env, Schedule([step]), s) for s in seeds])["return"]
-        print(f"single shock at decision {step}: mean return {means[step]:.1f}", flush=True)
-    return max(means, key=means.get)
 
 
 def main() -> None:
@@ -60,17 +50,18 @@ def main() -> None:
     cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
     coordinator = Coordinator()
     env = builders.make_env(cfg, coordinator)
-    seeds = list(range(FIRST_SEED, FIRST_SEED + args.seeds))
+    seeds = list(held_out_seeds(args.seeds))
     with abort_on_error(), coordinator:
         if not coordinator.is_leader():
             return
-        step = best_single_shock(env, seeds[: args.select_seeds])
+        best, means = best_single_shock(env, seeds[: args.select_seeds])
+        print(f"mean return of one shock at each decision (None: no shock): {means}", flush=True)
         policies = {
             "never shock": Constant(0),
             "always shock": Constant(1),
             "random (p=0.5)": RandomActions(0.5, seed=0),
             "every 4th": EveryKth(4),
-            f"single shock at decision {step}": Schedule([step]),
+            f"best single shock {sorted(best.steps)}": best,
         }
         rows, per_seed = [], []
         for name, policy in policies.items():

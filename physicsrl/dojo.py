@@ -44,11 +44,18 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from physicsrl import builders
 from physicsrl.checkpoint import CheckpointManager, rng_state, set_rng_state
 
-__all__ = ["Dojo", "Counters", "episode_metrics", "EVAL_SEEDS"]
+__all__ = ["Dojo", "Counters", "episode_metrics", "held_out_seeds", "EVAL_SEEDS"]
 
 log = logging.getLogger("physicsrl.dojo")
 
-EVAL_SEEDS = tuple(range(1_000_000_000, 1_000_000_010))  # held out: training uses seed*1e6 + i
+
+def held_out_seeds(n: int) -> tuple[int, ...]:
+    """The first ``n`` held-out evaluation seeds 1000000000, 1000000001, ... (training batches
+    use seed * 1e6 + iteration, so runs with seed < 1000 never meet them)."""
+    return tuple(range(1_000_000_000, 1_000_000_000 + n))
+
+
+EVAL_SEEDS = held_out_seeds(10)
 STANDARD_KEYS = {"observation", "reward", "done", "terminated", "truncated", "step"}
 
 

@@ -235,16 +235,17 @@ def test_bad_config_is_a_one_line_error_on_every_rank(tmp_path, override, messag
 
 
 def test_eval_command_tables_a_trained_run(reference, tmp_path):
-    """``physicsrl-eval run=<run dir>`` under 2 ranks: table printed once, CSVs and the
-    learning curve in its own run directory."""
+    """``physicsrl-eval run=<run dir> seeds=3`` under 2 ranks: table printed once, CSVs (the
+    first 3 held-out seeds) and the learning curve in its own run directory."""
     _, run_dir, _ = reference
     out = tmp_path / "eval"
     arguments = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={run_dir}"]
-    result = run([*arguments, f"hydra.run.dir={out}"], tmp_path, timeout=120)
+    result = run([*arguments, "seeds=3", f"hydra.run.dir={out}"], tmp_path, timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.count("greedy DQN") == 1
     assert f"ckpt_{ITERATIONS:08d}.pt (iteration {ITERATIONS}" in result.stdout
     for name in ("eval.csv", "eval_summary.csv", "learning_curve.png"):
         assert (out / name).exists(), name
     rows = (out / "eval.csv").read_text().splitlines()
-    assert rows[0].startswith("policy,seed,return,length") and len(rows) == 1 + 10
+    assert rows[0].startswith("policy,seed,return,length") and len(rows) == 1 + 3
+    assert [row.split(",")[1] for row in rows[1:]] == ["1000000000", "1000000001", "1000000002"]

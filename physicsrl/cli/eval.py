@@ -24,7 +24,7 @@ from physicsrl.launch import output_dir, relaunch, run_hydra
 class EvalConfig:
     mpi: Mpi = field(default_factory=Mpi)
     run: str = "???"  # a run directory (its latest checkpoint) or a checkpoint file
-    seeds: Any = None  # null: the run's eval.seeds; or a list of seeds
+    seeds: Any = None  # null: the run's eval.seeds; a list of seeds; or N: the first N held out
     baselines: bool = True
     gif: bool = True
     gif_seed: Any = None  # null: the first seed
@@ -45,6 +45,8 @@ def check(cfg) -> None:
     check_keys(cfg, EvalConfig)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
+    if isinstance(cfg.seeds, int) and cfg.seeds < 1:
+        raise ValueError(f"seeds={cfg.seeds}: give N >= 1 held-out seeds, a list, or null")
     checkpoint(str(cfg.run))
 
 
@@ -101,7 +103,10 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
 
     dojo = make_dojo(train_cfg, env)
     dojo.q_network.load_state_dict(state["q_network"])
-    seeds = [int(s) for s in (cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds)]
+    from physicsrl.dojo import held_out_seeds
+
+    seeds = cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds
+    seeds = held_out_seeds(seeds) if isinstance(seeds, int) else [int(s) for s in seeds]
     policies = {"greedy DQN": dojo.q_network}
     if cfg.baselines:
         policies.update(baselines(env, train_cfg))
