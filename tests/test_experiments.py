@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import torch
+
 from tests.conftest import ROOT
 
 TRAIN = str(Path(sys.executable).with_name("physicsrl-train"))
@@ -42,9 +44,10 @@ def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
 
 
 def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
+    """The issue's sweep form (agent.lr, here 2 jobs): own run dirs, Adam at each job's lr."""
     sweep = tmp_path / "sweep"
     result = subprocess.run(
-        [TRAIN, "-m", "seed=0,1", *TINY, f"hydra.sweep.dir={sweep}"],
+        [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, f"hydra.sweep.dir={sweep}"],
         capture_output=True,
         text=True,
         timeout=600,
@@ -52,6 +55,10 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
+    for job, lr in (("0", 1e-3), ("1", 3e-4)):
+        checkpoint = max((sweep / job / "checkpoints").glob("ckpt_*.pt"))
+        state = torch.load(checkpoint, weights_only=False)
+        assert state["optimizer"]["param_groups"][0]["lr"] == lr
     table = tmp_path / "table.csv"
     subprocess.run(
         [sys.executable, str(ROOT / "experiments" / "collect.py"), str(sweep), "--csv", str(table)],
@@ -60,5 +67,5 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
         timeout=60,
     )
     rows = list(csv.DictReader(table.open()))
-    assert [row["overrides"].split()[0] for row in rows] == ["seed=0", "seed=1"]
+    assert [row["overrides"].split()[0] for row in rows] == ["agent.lr=0.001", "agent.lr=0.0003"]
     assert all(float(row["train_s"]) > 0 for row in rows)

@@ -49,6 +49,7 @@ class Exploration:
 @dataclass
 class DQNAgent:
     name: str = "dqn"
+    lr: float = 1e-3
     network: Network = field(default_factory=Network)
     exploration: Exploration = field(default_factory=Exploration)
 
@@ -88,7 +89,7 @@ class LossSection:
 
 @dataclass
 class OptimSection:
-    lr: float = 1e-3
+    lr: float = 1e-3  # train.yaml: ${agent.lr}
     weight_decay: float = 0.0
     updates_per_batch: int = 8
     learning_starts: int = 200
