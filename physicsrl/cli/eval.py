@@ -5,7 +5,8 @@ Rebuilds the env and the Q-network from the config stored in the checkpoint (eve
 the env; the leader evaluates), prints a table (return, success, shocks, episode length; one
 episode per seed), writes ``eval.csv`` (per seed) and ``eval_summary.csv`` (means) and, for the
 physics tasks, ``episode.gif``: the field after the reset and after each decision, catheter
-electrodes, shocks marked. Files go to this command's run directory.
+electrodes, shocks marked (by default of the first seed whose greedy episode succeeds). Files
+go to this command's run directory.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ class EvalConfig:
     seeds: Any = None  # null: the run's eval.seeds; a list of seeds; or N: the first N held out
     baselines: bool = True
     gif: bool = True
-    gif_seed: Any = None  # null: the first seed
+    gif_seed: Any = None  # null: the first seed the greedy policy succeeds on (else the first)
     fps: float = 1.5
     curve: bool = True  # learning_curve.png from the run's TensorBoard events
     overrides: list[str] = field(default_factory=list)  # changes to the run's config
@@ -138,7 +139,10 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
         if curve is not None:
             print(f"learning curve: {curve}")
     if cfg.gif and task_name(env) is not None:
-        seed = int(cfg.gif_seed if cfg.gif_seed is not None else seeds[0])
+        succeeded = [
+            r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")
+        ]
+        seed = int(cfg.gif_seed if cfg.gif_seed is not None else (succeeded or seeds)[0])
         with torch.no_grad():
             gif = episode_gif(env, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
         print(
