@@ -30,10 +30,10 @@ def compose(*overrides: str, section: str = "job") -> str:
 
 def test_atp_presets_compose_with_the_report_figures():
     job = compose("+experiment=atp")
-    assert "name: atp" in job and "name: catheter" in job and "iterations: 300" in job
+    assert "name: atp" in job and "name: catheter" in job and "iterations: 200" in job
     wide = compose("+experiment=atp_wide")
     assert "- -20.0\n    - 20.0" in wide  # the wider placement of the reset stimulus
-    assert "iterations: 300" in wide  # and everything else from the atp preset
+    assert "iterations: 200" in wide  # and everything else from the atp preset
 
 
 def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
