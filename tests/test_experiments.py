@@ -69,3 +69,18 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     rows = list(csv.DictReader(table.open()))
     assert [row["overrides"].split()[0] for row in rows] == ["agent.lr=0.001", "agent.lr=0.0003"]
     assert all(float(row["train_s"]) > 0 for row in rows)
+
+
+def test_atp_baselines_script_tables_each_policy(tmp_path):
+    """The baseline script on a small ATP preset: one row per policy, shocks as scheduled."""
+    script = ROOT / "experiments" / "atp_baselines.py"
+    small = ["env.mesh.cells=20", "env.max_decisions=4", "env.extra_waits=2"]
+    command = [sys.executable, str(script), "--seeds", "2", "--select-seeds", "1"]
+    command += ["--policies", "never,always,single", "--out", str(tmp_path), *small]
+    subprocess.run(command, check=True, capture_output=True, timeout=300, cwd=tmp_path)
+    rows = {r["policy"]: r for r in csv.DictReader((tmp_path / "atp_baselines.csv").open())}
+    assert list(rows)[:2] == ["never shock", "always shock"] and len(rows) == 3
+    assert float(rows["never shock"]["shocks"]) == 0 and float(rows["always shock"]["shocks"]) == 4
+    single = next(r for name, r in rows.items() if name.startswith("single shock"))
+    assert float(single["shocks"]) <= 1
+    assert "commit" in (tmp_path / "atp_baselines.txt").read_text()
