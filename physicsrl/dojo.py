@@ -88,6 +88,7 @@ def episode_metrics(rollout: TensorDictBase, action_counts: dict | None = None) 
 
 
 def mean_metrics(rows: list[dict]) -> dict:
+    """The mean of each metric over ``rows`` (a metric missing from a row counts as 0)."""
     keys = dict.fromkeys(k for row in rows for k in row)
     return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}
 
