@@ -125,18 +125,34 @@ class Normalizer(nn.Module):
         return f"size={self.loc.numel()}, fitted={self.fitted}"
 
 
-def make_q_network(env: EnvBase, network: Any = None, observation_key: str = "observation"):
-    """A greedy ``QValueActor``: [Normalizer] -> MLP -> argmax over the discrete actions.
+class Inputs(nn.Sequential):
+    """``nn.Sequential`` fed with several tensors (one per input key, each (..., n_k)),
+    concatenated along the last dimension as float32."""
 
-    ``network``: ``hidden`` (list of layer widths), ``activation`` (relu, tanh, elu, gelu),
-    ``normalize`` (put a :class:`Normalizer` first; the Dojo fits it once from the first
-    collected data).
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return super().forward(torch.cat([x.float() for x in inputs], -1))
+
+
+def make_q_network(env: EnvBase, network: Any = None):
+    """A greedy ``QValueActor``: inputs -> [Normalizer] -> MLP -> argmax over the actions.
+
+    ``network``: ``inputs`` (the env keys the network reads, concatenated in this order;
+    default ``[observation]``; e.g. ``[observation, step]`` adds the decision index),
+    ``hidden`` (list of layer widths), ``activation`` (relu, tanh, elu, gelu), ``normalize``
+    (put a :class:`Normalizer` first; the Dojo fits it once from the first collected data).
     """
+    inputs = [str(key) for key in _get(network, "inputs", ["observation"])]
+    unknown = [key for key in inputs if key not in env.observation_spec.keys()]
+    if not inputs or unknown:
+        raise ValueError(
+            f"agent.network.inputs {inputs}: each must be one of the env's observation keys "
+            f"{sorted(env.observation_spec.keys())}"
+        )
     hidden = list(_get(network, "hidden", [64, 64]))
     activation = ACTIVATIONS[str(_get(network, "activation", "relu"))]
     spec = env.action_spec
     n_actions = int(spec.space.n)
-    n_obs = int(env.observation_spec[observation_key].shape[-1])
+    n_obs = sum(int(env.observation_spec[key].shape[-1]) for key in inputs)
     layers: list[nn.Module] = []
     if _get(network, "normalize", True):
         layers.append(Normalizer(n_obs))
@@ -145,8 +161,7 @@ def make_q_network(env: EnvBase, network: Any = None, observation_key: str = "ob
             in_features=n_obs, out_features=n_actions, num_cells=hidden, activation_class=activation
         )
     )
-    module = nn.Sequential(*layers)
-    return QValueActor(module, in_keys=[observation_key], spec=spec)
+    return QValueActor(Inputs(*layers), in_keys=inputs, spec=spec)
 
 
 def normalizer_of(q_network: nn.Module) -> Normalizer | None:

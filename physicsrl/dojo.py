@@ -38,13 +38,21 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
+from torchrl.data.postprocs import MultiStep
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from physicsrl import builders
 from physicsrl.checkpoint import CheckpointManager, rng_state, set_rng_state
 
-__all__ = ["Dojo", "Counters", "episode_metrics", "held_out_seeds", "EVAL_SEEDS"]
+__all__ = [
+    "Dojo",
+    "Counters",
+    "episode_metrics",
+    "held_out_seeds",
+    "n_step_transitions",
+    "EVAL_SEEDS",
+]
 
 log = logging.getLogger("physicsrl.dojo")
 
@@ -87,6 +95,22 @@ def episode_metrics(rollout: TensorDictBase, action_counts: dict | None = None) 
     return metrics
 
 
+def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> TensorDictBase:
+    r"""The n-step transitions of a batch of consecutive steps (shape (T,), one env).
+
+    Step t becomes (s_t, a_t, R_t, s_{t+k}) with :math:`R_t = \sum_{i<k} \gamma^i r_{t+i}` and
+    k = min(n, steps until the episode or the batch ends); ``steps_to_next_obs`` = k makes the
+    TD target :math:`R_t + \gamma^k \max_a Q(s_{t+k}, a)`, and the done flags are those of
+    step t+k-1, so no target bootstraps from a state after the end of an episode. TorchRL's
+    ``MultiStep`` does the sums but keeps step t's own done flags.
+    """
+    out = MultiStep(gamma, n_steps)(data)
+    last = torch.arange(data.shape[-1]) + out["steps_to_next_obs"].reshape(-1) - 1
+    for key in ("done", "terminated", "truncated"):
+        out["next", key] = data["next", key][last]
+    return out
+
+
 def mean_metrics(rows: list[dict]) -> dict:
     """The mean of each metric over ``rows`` (a metric missing from a row counts as 0)."""
     keys = dict.fromkeys(k for row in rows for k in row)
@@ -115,6 +139,8 @@ class Dojo:
         the Q-network's ``Normalizer`` (if any) is fitted to the stored observations.
     grad_clip:
         Max gradient norm (``None``: no clipping).
+    n_steps:
+        Learn from n-step transitions (:func:`n_step_transitions`; 1: one-step TD).
     reset_at_each_iter:
         Start every batch from a fresh episode seeded by :meth:`train_seed` (exact resume).
     seed:
@@ -150,6 +176,7 @@ class Dojo:
         updates_per_batch: int = 4,
         learning_starts: int = 200,
         grad_clip: float | None = 10.0,
+        n_steps: int = 1,
         reset_at_each_iter: bool = True,
         seed: int = 0,
         eval_every: int = 10,
@@ -173,6 +200,8 @@ class Dojo:
         self.updates_per_batch = int(updates_per_batch)
         self.learning_starts = int(learning_starts)
         self.grad_clip = grad_clip
+        self.n_steps = int(n_steps)
+        self.gamma = float(self.loss.value_estimator.gamma)
         self.reset_at_each_iter = bool(reset_at_each_iter)
         self.seed = int(seed)
         self.eval_every = int(eval_every)
@@ -231,6 +260,8 @@ class Dojo:
                 self._add_time("simulation", collect_s - (self._coordination_s - coordination))
                 returns = self._record_batch(data)
                 self.exploration[-1].step(data.numel())  # anneal epsilon
+                if self.n_steps > 1:
+                    data = n_step_transitions(data, self.n_steps, self.gamma)
                 self.replay_buffer.extend(data.reshape(-1))
 
                 # 2. learn from replayed transitions
@@ -295,7 +326,8 @@ class Dojo:
         normalizer = builders.normalizer_of(self.q_network)
         if normalizer is not None and not normalizer.fitted:
             stored = self.replay_buffer[: len(self.replay_buffer)]
-            normalizer.fit(stored["observation"])  # shared by the online and target networks
+            inputs = [stored[key].float() for key in self.q_network.in_keys]
+            normalizer.fit(torch.cat(inputs, -1))  # shared by the online and target networks
             log.info(
                 "observation normaliser: loc %s scale %s",
                 normalizer.loc.tolist(),

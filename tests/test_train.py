@@ -15,9 +15,11 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
+from tensordict import TensorDict
 
 from tests.conftest import MPIEXEC, ROOT
 
@@ -64,8 +66,10 @@ def reference(tmp_path_factory):
     return cwd, run_dir, result
 
 
-def test_dojo_learns_a_known_optimum():
-    """In-process, one rank: greedy return of the 3-step chain reaches its optimum 1."""
+@pytest.mark.parametrize("n_steps", [1, 3])
+def test_dojo_learns_a_known_optimum(n_steps):
+    """In-process, one rank: greedy return of the 3-step chain reaches its optimum 1, with
+    one-step and with 3-step TD targets."""
     sys.path.insert(0, str(TOY.parent))
     from train_toy_env import ToyChainEnv
 
@@ -86,6 +90,7 @@ def test_dojo_learns_a_known_optimum():
             exploration=builders.make_exploration(q_network, env, {"annealing_frames": 500}),
             frames_per_batch=16,
             learning_starts=64,
+            n_steps=n_steps,
             eval_every=0,
             progress=False,
         )
@@ -94,6 +99,74 @@ def test_dojo_learns_a_known_optimum():
     assert dojo.replay_buffer is buffer and len(buffer) == 500  # the given capacity is kept
     assert summary["eval"]["return"] == pytest.approx(ToyChainEnv.optimum)
     assert summary["eval"]["success"] == 1.0
+
+
+def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
+    """Rewards 1 per step, an episode ending at step 2, n = 3, gamma = 1/2: the known sums,
+    next states and done flags; the DQN target bootstraps only where the episode goes on."""
+    from tensordict import TensorDict
+    from torchrl.data import Categorical, Composite, Unbounded
+
+    from physicsrl import builders
+    from physicsrl.dojo import n_step_transitions
+
+    ended = torch.tensor([[False], [False], [True], [False], [False], [False]])
+    data = TensorDict(
+        observation=torch.arange(6.0)[:, None],
+        action=torch.zeros(6, dtype=torch.int64),
+        next=TensorDict(
+            observation=torch.arange(1.0, 7.0)[:, None],
+            reward=torch.ones(6, 1),
+            done=ended,
+            terminated=ended.clone(),
+            truncated=torch.zeros(6, 1, dtype=torch.bool),
+            batch_size=[6],
+        ),
+        batch_size=[6],
+    )
+    out = n_step_transitions(data, 3, 0.5)
+    assert out["next", "reward"].flatten().tolist() == [1.75, 1.5, 1.0, 1.75, 1.5, 1.0]
+    assert out["next", "observation"].flatten().tolist() == [3, 3, 3, 6, 6, 6]
+    assert out["next", "terminated"].flatten().tolist() == [True] * 3 + [False] * 3
+    assert out["steps_to_next_obs"].flatten().tolist() == [3, 2, 1, 3, 2, 1]
+
+    env = SimpleNamespace(
+        observation_spec=Composite(observation=Unbounded(shape=(1,))),
+        action_spec=Categorical(2),
+    )
+    q_network = builders.make_q_network(env, {"hidden": [4], "normalize": False})
+    loss = builders.make_loss(q_network, env, {"gamma": 0.5, "double_dqn": False})
+    target = loss.value_estimator.value_estimate(out.clone()).flatten()
+    with torch.no_grad():
+        best_next = q_network(out["next"].select("observation").clone())["chosen_action_value"]
+    bootstrap = 0.5 ** out["steps_to_next_obs"].flatten() * best_next.flatten()
+    expected = out["next", "reward"].flatten() + torch.tensor([0, 0, 0, 1, 1, 1]) * bootstrap
+    assert torch.allclose(target, expected)
+
+
+def test_q_network_reads_its_inputs_concatenated():
+    """``inputs: [observation, step]``: the MLP sees (observation, step as a float) in that
+    order; an input the env does not have is a one-line error naming it."""
+    from torchrl.data import Bounded, Categorical, Composite, Unbounded
+
+    from physicsrl import builders
+
+    env = SimpleNamespace(
+        observation_spec=Composite(
+            observation=Unbounded(shape=(3,)), step=Bounded(0, 15, shape=(1,), dtype=torch.int64)
+        ),
+        action_spec=Categorical(2),
+    )
+    network = {"inputs": ["observation", "step"], "hidden": [8], "normalize": False}
+    q_network = builders.make_q_network(env, network)
+    assert q_network.in_keys == ["observation", "step"]
+    observation, step = torch.randn(5, 3), torch.arange(5)[:, None]
+    values = q_network(TensorDict(observation=observation, step=step, batch_size=[5]))
+    mlp = q_network.module[0].module  # Inputs(MLP)
+    expected = mlp[0](torch.cat([observation, step.float()], -1))
+    assert torch.allclose(values["action_value"], expected)
+    with pytest.raises(ValueError, match="agent.network.inputs.*'time'"):
+        builders.make_q_network(env, {"inputs": ["observation", "time"]})
 
 
 def test_mpi_run_writes_checkpoints_events_and_log_only_in_the_leader_run_dir(reference):

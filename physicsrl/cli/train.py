@@ -34,6 +34,7 @@ PAIRS = {"heat": ("quadrants", "heat_stop"), "ms": ("catheter", "atp")}
 # the schema: unknown keys and wrong types are rejected while composing ---------------------
 @dataclass
 class Network:
+    inputs: list[str] = field(default_factory=lambda: ["observation"])  # env keys, concatenated
     hidden: list[int] = field(default_factory=lambda: [64, 64])
     activation: str = "relu"  # relu | tanh | elu | gelu
     normalize: bool = True  # fit (x - mean) / std on the first collected data
@@ -84,6 +85,7 @@ class LossSection:
     gamma: float = 0.99
     loss_function: str = "smooth_l1"  # l1 | l2 | smooth_l1
     double_dqn: bool = True
+    n_steps: int = 1  # n-step TD targets
     target: TargetSection = field(default_factory=TargetSection)
 
 
@@ -420,6 +422,7 @@ def make_dojo(cfg, env, coordinator=None, log_dir: Path | None = None):
         updates_per_batch=cfg.optim.updates_per_batch,
         learning_starts=cfg.optim.learning_starts,
         grad_clip=cfg.optim.grad_clip or None,
+        n_steps=cfg.loss.get("n_steps", 1),  # checkpoints of earlier versions lack it
         seed=cfg.seed,
         eval_every=cfg.eval.every,
         eval_seeds=list(cfg.eval.seeds),
