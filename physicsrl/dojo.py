@@ -106,8 +106,10 @@ def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> Tens
     """
     out = MultiStep(gamma, n_steps)(data)
     last = torch.arange(data.shape[-1]) + out["steps_to_next_obs"].reshape(-1) - 1
+    ended = data["next"]
     for key in ("done", "terminated", "truncated"):
-        out["next", key] = data["next", key][last]
+        if key in ended.keys():  # not every env reports truncated
+            out["next", key] = ended[key][last]
     return out
 
 
