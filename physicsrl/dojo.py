@@ -125,7 +125,7 @@ class Dojo:
     Parameters
     ----------
     q_network:
-        A greedy Q-value actor (``QValueActor``) reading ``"observation"``.
+        A greedy Q-value actor (``QValueActor``) reading the env keys in its ``in_keys``.
     env:
         A TorchRL env with a discrete action spec. Stepped only from the calling rank.
     optimizer, loss, target_updater, replay_buffer, exploration:
