@@ -85,3 +85,23 @@ def test_atp_baselines_script_tables_each_policy(tmp_path):
     single = next(r for name, r in rows.items() if name.startswith("single shock"))
     assert float(single["shocks"]) <= 1
     assert "commit" in (tmp_path / "atp_baselines.txt").read_text()
+
+
+def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path):
+    """The stored ATP policy (experiments/results/atp_agent.pt) on the first held-out seed, on
+    2 MPI ranks: the return, success and shocks of that seed's row in atp_agent_eval.csv (made
+    on 1 rank), so the table is reproducible and does not depend on the number of ranks."""
+    from tests.conftest import MPIEXEC
+
+    results = ROOT / "experiments" / "results"
+    out = tmp_path / "eval"
+    command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
+    command += [f"run={results / 'atp_agent.pt'}", "seeds=1", "baselines=false", "gif=false"]
+    command += ["curve=false", f"hydra.run.dir={out}"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    (row,) = csv.DictReader((out / "eval.csv").open())
+    stored = next(csv.DictReader((results / "atp_agent_eval.csv").open()))
+    assert row["seed"] == stored["seed"]
+    for key in ("return", "success", "shocks"):
+        assert float(row[key]) == float(stored[key]), key
