@@ -46,20 +46,23 @@ def episode(env, policy, seed: int) -> dict:
     return {k: metrics[k] for k in ("return", "success", "shocks", "length")}
 
 
+POLICIES = ("never", "always", "random", "every4", "single")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--experiment", default="atp", help="the preset: atp | atp_wide")
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--select-seeds", type=int, default=5)
     parser.add_argument("--single-shock", type=int, help="the single shock's decision (no search)")
-    parser.add_argument("--policies", default="never,always,random,every4,single")
+    parser.add_argument("--policies", default=",".join(POLICIES))
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
     args = parser.parse_args()
     keep = args.policies.split(",")
-    unknown = [k for k in keep if k not in ("never", "always", "random", "every4", "single")]
+    unknown = [k for k in keep if k not in POLICIES]
     if unknown:
-        parser.error(f"--policies: unknown {unknown}; use never,always,random,every4,single")
+        parser.error(f"--policies: unknown {unknown}; use {','.join(POLICIES)}")
     commit = subprocess.run(
         ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
     ).stdout.strip()

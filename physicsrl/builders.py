@@ -129,8 +129,12 @@ class Inputs(nn.Sequential):
     """``nn.Sequential`` fed with several tensors (one per input key, each (..., n_k)),
     concatenated along the last dimension as float32."""
 
+    @staticmethod
+    def concat(*inputs: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x.float() for x in inputs], -1)
+
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        return super().forward(torch.cat([x.float() for x in inputs], -1))
+        return super().forward(self.concat(*inputs))
 
 
 def make_q_network(env: EnvBase, network: Any = None):

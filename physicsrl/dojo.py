@@ -203,7 +203,6 @@ class Dojo:
         self.learning_starts = int(learning_starts)
         self.grad_clip = grad_clip
         self.n_steps = int(n_steps)
-        self.gamma = float(self.loss.value_estimator.gamma)
         self.reset_at_each_iter = bool(reset_at_each_iter)
         self.seed = int(seed)
         self.eval_every = int(eval_every)
@@ -263,7 +262,8 @@ class Dojo:
                 returns = self._record_batch(data)
                 self.exploration[-1].step(data.numel())  # anneal epsilon
                 if self.n_steps > 1:
-                    data = n_step_transitions(data, self.n_steps, self.gamma)
+                    gamma = float(self.loss.value_estimator.gamma)
+                    data = n_step_transitions(data, self.n_steps, gamma)
                 self.replay_buffer.extend(data.reshape(-1))
 
                 # 2. learn from replayed transitions
@@ -328,8 +328,8 @@ class Dojo:
         normalizer = builders.normalizer_of(self.q_network)
         if normalizer is not None and not normalizer.fitted:
             stored = self.replay_buffer[: len(self.replay_buffer)]
-            inputs = [stored[key].float() for key in self.q_network.in_keys]
-            normalizer.fit(torch.cat(inputs, -1))  # shared by the online and target networks
+            inputs = builders.Inputs.concat(*(stored[key] for key in self.q_network.in_keys))
+            normalizer.fit(inputs)  # shared by the online and target networks
             log.info(
                 "observation normaliser: loc %s scale %s",
                 normalizer.loc.tolist(),
