@@ -74,6 +74,7 @@ def test_dojo_learns_a_known_optimum(n_steps):
     from train_toy_env import ToyChainEnv
 
     from physicsrl import builders
+    from physicsrl.config import BufferConfig, Exploration, Network
     from physicsrl.coordinated import Coordinator
     from physicsrl.dojo import Dojo
 
@@ -81,13 +82,15 @@ def test_dojo_learns_a_known_optimum(n_steps):
     coordinator = Coordinator()
     env = ToyChainEnv(coordinator, length=3)
     with coordinator:
-        q_network = builders.make_q_network(env, {"hidden": [32, 32]})
-        buffer = builders.make_buffer({"size": 500, "batch_size": 64})
+        q_network = builders.make_q_network(env, Network(hidden=[32, 32]))
+        buffer = builders.make_buffer(BufferConfig(size=500, batch_size=64))
         dojo = Dojo(
             q_network,
             env,
             replay_buffer=buffer,
-            exploration=builders.make_exploration(q_network, env, {"annealing_frames": 500}),
+            exploration=builders.make_exploration(
+                q_network, env, Exploration(annealing_frames=500)
+            ),
             frames_per_batch=16,
             learning_starts=64,
             n_steps=n_steps,
@@ -108,6 +111,7 @@ def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
     from torchrl.data import Categorical, Composite, Unbounded
 
     from physicsrl import builders
+    from physicsrl.config import LossConfig, Network
     from physicsrl.dojo import n_step_transitions
 
     ended = torch.tensor([[False], [False], [True], [False], [False], [False]])
@@ -134,8 +138,8 @@ def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
         observation_spec=Composite(observation=Unbounded(shape=(1,))),
         action_spec=Categorical(2),
     )
-    q_network = builders.make_q_network(env, {"hidden": [4], "normalize": False})
-    loss = builders.make_loss(q_network, env, {"gamma": 0.5, "double_dqn": False})
+    q_network = builders.make_q_network(env, Network(hidden=[4], normalize=False))
+    loss = builders.make_loss(q_network, env, LossConfig(gamma=0.5, double_dqn=False))
     target = loss.value_estimator.value_estimate(out.clone()).flatten()
     with torch.no_grad():
         best_next = q_network(out["next"].select("observation").clone())["chosen_action_value"]
@@ -150,6 +154,7 @@ def test_q_network_reads_its_inputs_concatenated():
     from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
     from physicsrl import builders
+    from physicsrl.config import Network
 
     env = SimpleNamespace(
         observation_spec=Composite(
@@ -157,7 +162,7 @@ def test_q_network_reads_its_inputs_concatenated():
         ),
         action_spec=Categorical(2),
     )
-    network = {"inputs": ["observation", "step"], "hidden": [8], "normalize": False}
+    network = Network(inputs=["observation", "step"], hidden=[8], normalize=False)
     q_network = builders.make_q_network(env, network)
     assert q_network.in_keys == ["observation", "step"]
     observation, step = torch.randn(5, 3), torch.arange(5)[:, None]
@@ -166,7 +171,7 @@ def test_q_network_reads_its_inputs_concatenated():
     expected = mlp[0](torch.cat([observation, step.float()], -1))
     assert torch.allclose(values["action_value"], expected)
     with pytest.raises(ValueError, match="agent.network.inputs.*'time'"):
-        builders.make_q_network(env, {"inputs": ["observation", "time"]})
+        builders.make_q_network(env, Network(inputs=["observation", "time"]))
 
 
 def test_mpi_run_writes_checkpoints_events_and_log_only_in_the_leader_run_dir(reference):
