@@ -29,7 +29,12 @@ with cloudpickle as the fallback for lambdas and closures; no-argument calls pic
 
 Failures never hang the job: an exception in a parallel method ends every rank with
 ``MPI.Abort`` after printing the traceback once, and an exception in leader-only code inside
-the ``with`` block releases the followers, which exit with status 1.
+the ``with`` block releases the followers, which exit with status 1. ``sys.exit(k)`` on the
+leader inside the block is not a fault: every rank exits with status k, silently; a
+``KeyboardInterrupt`` there ends every rank with status 130 and one line. A call that never
+finishes on some ranks (a collective entered by some ranks only) is caught by the opt-in
+watchdog (``timeout`` seconds, or the ``PHYSICSRL_TIMEOUT`` environment variable), which aborts
+every rank with one line naming the call and the ranks that had not finished it.
 
 Idle followers poll a non-blocking receive: they spin for ``spin_s`` seconds after the last
 call, then sleep with a growing interval of at most ``max_sleep_s``, so a follower waiting
@@ -44,6 +49,7 @@ import os
 import pickle
 import struct
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Hashable
@@ -66,11 +72,13 @@ __all__ = [
 
 INLINE_BYTES = 240
 _HEADER = struct.Struct("<4i")  # route, flags, payload length, sequence number
-_STOP, _FAIL = -1, -2
+_STOP, _FAIL, _EXIT = -1, -2, -3  # _EXIT carries the leader's exit status in the flags
 _PICKLE, _CLOUDPICKLE, _DEFINE = 1, 2, 4
-_TAG = 17
+_TAG, _DONE_TAG = 17, 18
+INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
 
 CHECK_ENV = "PHYSICSRL_CHECK_SEQUENCE"
+TIMEOUT_ENV = "PHYSICSRL_TIMEOUT"
 
 
 class CoordinationError(RuntimeError):
@@ -148,6 +156,12 @@ class Coordinator:
         Verify after every call that all ranks executed the same sequence of parallel methods
         (costs one ``allgather`` per call). Defaults to the ``PHYSICSRL_CHECK_SEQUENCE``
         environment variable.
+    timeout:
+        Seconds after which a parallel call that some ranks have not finished aborts the job
+        with one line naming the call and those ranks; None (the default, or the
+        ``PHYSICSRL_TIMEOUT`` environment variable) turns the watchdog off at no cost. The
+        leader's value is used on every rank. When on, every follower sends the leader one
+        small message per call, and a thread on the leader checks them.
     """
 
     def __init__(
@@ -156,6 +170,7 @@ class Coordinator:
         spin_s: float = 0.05,
         max_sleep_s: float = 0.002,
         check: bool | None = None,
+        timeout: float | None = None,
     ):
         self.comm = comm
         self.rank = comm.rank
@@ -178,6 +193,12 @@ class Coordinator:
         self.spin_s = spin_s
         self.max_sleep_s = max_sleep_s
         self.check = bool(int(os.environ.get(CHECK_ENV, "0"))) if check is None else check
+        self.timeout = _timeout_from_environment() if timeout is None else timeout
+        if self.timeout is not None and not self.timeout > 0:
+            raise CoordinationError(f"timeout={self.timeout}: must be a number of seconds > 0")
+        self._watchdog: _Watchdog | None = None  # the leader's, while the watchdog is on
+        self._done: MPI.Prequest | None = None  # a follower's report of a finished call
+        self._done_sequence = np.zeros(1, dtype=np.int32)
         self.objects: dict[Hashable, Any] = {}
         self.depth = 0  # >0 while a parallel method runs: nested calls are not re-sent
         self.direct = False  # calls need no coordination: one rank, or nested (fast path)
@@ -227,6 +248,14 @@ class Coordinator:
                 )
             if self.rank == 0 and self.size > 1:
                 self.broadcast(obj._namespace, function.__name__, args, kwargs)
+                if self._watchdog is not None:
+                    self._watchdog.started(
+                        self._sequence, f"{type(obj).__name__}.{function.__name__}"
+                    )
+                    try:
+                        return self.execute(obj, function, args, kwargs)
+                    finally:
+                        self._watchdog.finished(0, self._sequence)
         return self.execute(obj, function, args, kwargs)
 
     def broadcast(
@@ -301,6 +330,8 @@ class Coordinator:
                 return
             if route == _FAIL:
                 raise SystemExit(1)  # the leader failed and printed its traceback
+            if route == _EXIT:
+                raise SystemExit(flags)  # the leader exits with this status: so do we
             try:
                 if flags & _DEFINE:
                     n = int.from_bytes(payload[:4], "little")
@@ -326,6 +357,10 @@ class Coordinator:
                 # that the traceback is printed once.
                 time.sleep(1.0)
                 _fail(self.comm, "exception in a parallel method on a follower")
+            if self._done is not None:
+                self._done.Wait()  # the previous report (a small message: already sent)
+                self._done_sequence[0] = self._sequence
+                self._done.Start()
 
     # both sides ------------------------------------------------------------------------
     def execute(self, obj: Any, function: Callable, args: tuple, kwargs: dict) -> Any:
@@ -385,6 +420,13 @@ class Coordinator:
                 _bind_directly(obj)
         # Persistent requests: a third of the cost of a fresh Send/Irecv per message.
         self._sending = [self._channel.Send_init(self._message, c, _TAG) for c in self._children]
+        if self.size > 1:
+            self.timeout = self._channel.bcast(self.timeout, 0)
+        if self.timeout is not None and self.size > 1:
+            if self.rank == 0:
+                self._watchdog = _Watchdog(self._channel, self.timeout)
+            else:
+                self._done = self._channel.Send_init(self._done_sequence, 0, _DONE_TAG)
         if self.rank != 0:
             self._receiving = self._channel.Recv_init(self._message, self._parent, _TAG)
             try:
@@ -394,10 +436,14 @@ class Coordinator:
         return self
 
     def _close(self) -> None:
-        for request in [*self._sending, self._receiving]:
+        if self._done is not None:
+            self._done.Wait()
+        if self._watchdog is not None:
+            self._watchdog.stop()
+        for request in [*self._sending, self._receiving, self._done]:
             if request:
                 request.Free()
-        self._sending, self._receiving = [], None
+        self._sending, self._receiving, self._done, self._watchdog = [], None, None, None
         if self._local:
             for obj in self.objects.values():
                 _unbind(obj)
@@ -407,12 +453,111 @@ class Coordinator:
     def __exit__(self, kind, value, tb) -> bool:
         if self.rank != 0:
             return False
+        interrupted = kind is not None and issubclass(kind, KeyboardInterrupt) and self.size > 1
         try:
-            if self.size > 1:
-                self._send(_STOP if kind is None else _FAIL, 0, b"")
+            if self.size == 1:
+                pass
+            elif kind is None:
+                if self._watchdog is not None:
+                    self._watchdog.wait_for_everyone(self._sequence)
+                self._send(_STOP, 0, b"")
+            elif issubclass(kind, SystemExit):
+                self._send(_EXIT, _exit_status(value.code), b"")
+            elif interrupted:
+                self._send(_EXIT, INTERRUPTED, b"")
+            else:
+                self._send(_FAIL, 0, b"")
         finally:
             self._close()
+        if interrupted:
+            sys.stderr.write(f"interrupted: every rank exits with status {INTERRUPTED}\n")
+            raise SystemExit(INTERRUPTED) from None
         return False
+
+
+def _exit_status(code: Any) -> int:
+    """The process exit status of ``SystemExit(code)``, as Python computes it."""
+    if code is None:
+        return 0
+    return code if isinstance(code, int) else 1
+
+
+def _timeout_from_environment() -> float | None:
+    text = os.environ.get(TIMEOUT_ENV, "").strip()
+    if not text:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise CoordinationError(f"{TIMEOUT_ENV}={text!r}: must be a number of seconds") from None
+
+
+class _Watchdog:
+    """The leader's thread that aborts every rank when a parallel call overstays ``timeout``.
+
+    The leader records when each call started (by sequence number) and when it finished it
+    itself; followers report each finished call in a small message on ``channel``. Every
+    ``timeout / 4`` seconds (at most 0.25 s) the thread reads those reports; a rank whose oldest
+    unfinished call started more than ``timeout`` seconds ago ends the job.
+    """
+
+    def __init__(self, channel: MPI.Comm, timeout: float):
+        if MPI.Query_thread() < MPI.THREAD_MULTIPLE:
+            raise CoordinationError("the watchdog needs MPI initialised with THREAD_MULTIPLE")
+        self.channel = channel
+        self.timeout = timeout
+        self._finished = [0] * channel.size  # rank -> the last call it finished
+        self._calls: dict[int, tuple[str, float]] = {}  # unfinished: sequence -> (name, start)
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="physicsrl-watchdog", daemon=True)
+        self._thread.start()
+
+    def started(self, sequence: int, name: str) -> None:
+        with self._lock:
+            self._calls[sequence] = (name, time.monotonic())
+
+    def finished(self, rank: int, sequence: int) -> None:
+        with self._lock:
+            self._finished[rank] = max(self._finished[rank], sequence)
+            oldest = min(self._finished)
+            for done in [s for s in self._calls if s <= oldest]:
+                del self._calls[done]
+
+    def wait_for_everyone(self, sequence: int) -> None:
+        """Block until every rank has finished call ``sequence`` (or the watchdog aborts)."""
+        while min(self._finished) < sequence:
+            time.sleep(1e-3)
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self._thread.join()
+
+    def _watch(self) -> None:
+        report = np.zeros(1, dtype=np.int32)
+        status = MPI.Status()
+        while not self._stopping.wait(min(self.timeout / 4, 0.25)):
+            while self.channel.Iprobe(MPI.ANY_SOURCE, _DONE_TAG, status):
+                self.channel.Recv(report, status.Get_source(), _DONE_TAG)
+                self.finished(status.Get_source(), int(report[0]))
+            with self._lock:
+                overdue = [
+                    (s, name)
+                    for s, (name, start) in self._calls.items()
+                    if time.monotonic() - start > self.timeout
+                ]
+                if not overdue:
+                    continue
+                sequence, name = min(overdue)
+                late = [r for r, done in enumerate(self._finished) if done < sequence]
+            sys.stderr.write(
+                f"watchdog: parallel call {name} (call {sequence}) has not finished after "
+                f"{self.timeout:g} s on ranks {late}; aborting every rank\n"
+            )
+            sys.stderr.flush()
+            time.sleep(0.2)  # let the launcher forward the line before Abort tears the job down
+            self.channel.Abort(1)
+            os._exit(1)
 
 
 class _Unregistered:
