@@ -43,6 +43,7 @@ while the leader trains uses a small fraction of a core.
 
 from __future__ import annotations
 
+import collections
 import functools
 import hashlib
 import os
@@ -75,6 +76,7 @@ _HEADER = struct.Struct("<4i")  # route, flags, payload length, sequence number
 _STOP, _FAIL, _EXIT = -1, -2, -3  # _EXIT carries the leader's exit status in the flags
 _PICKLE, _CLOUDPICKLE, _DEFINE = 1, 2, 4
 _TAG, _DONE_TAG = 17, 18
+REPORT_S = 0.01  # a follower under the watchdog reports finished calls at most this often
 INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
 
 CHECK_ENV = "PHYSICSRL_CHECK_SEQUENCE"
@@ -199,6 +201,8 @@ class Coordinator:
         self._watchdog: _Watchdog | None = None  # the leader's, while the watchdog is on
         self._done: MPI.Prequest | None = None  # a follower's report of a finished call
         self._done_sequence = np.zeros(1, dtype=np.int32)
+        self._unreported = False  # a finished call waits for the previous report to go out
+        self._next_report = 0.0  # time.monotonic() of the next report
         self.objects: dict[Hashable, Any] = {}
         self.depth = 0  # >0 while a parallel method runs: nested calls are not re-sent
         self.direct = False  # calls need no coordination: one rank, or nested (fast path)
@@ -249,9 +253,7 @@ class Coordinator:
             if self.rank == 0 and self.size > 1:
                 self.broadcast(obj._namespace, function.__name__, args, kwargs)
                 if self._watchdog is not None:
-                    self._watchdog.started(
-                        self._sequence, f"{type(obj).__name__}.{function.__name__}"
-                    )
+                    self._watchdog.started(self._sequence, obj, function)
                     try:
                         return self.execute(obj, function, args, kwargs)
                     finally:
@@ -313,6 +315,8 @@ class Coordinator:
                     while not test():
                         time.sleep(sleep)
                         sleep = min(2 * sleep, self.max_sleep_s)
+                        if self._unreported:
+                            self._report()
                     break
         self._forward()
         route, flags, n, self._sequence = _HEADER.unpack_from(self._message)
@@ -327,6 +331,11 @@ class Coordinator:
         while True:
             route, flags, payload = self._receive()
             if route == _STOP:
+                if self._done is not None:  # the leader waits for this last report
+                    self._done.Wait()
+                    self._done_sequence[0] = self._sequence
+                    self._done.Start()
+                    self._done.Wait()
                 return
             if route == _FAIL:
                 raise SystemExit(1)  # the leader failed and printed its traceback
@@ -358,9 +367,19 @@ class Coordinator:
                 time.sleep(1.0)
                 _fail(self.comm, "exception in a parallel method on a follower")
             if self._done is not None:
-                self._done.Wait()  # the previous report (a small message: already sent)
-                self._done_sequence[0] = self._sequence
-                self._done.Start()
+                self._unreported = True
+                if time.monotonic() >= self._next_report:
+                    self._report()
+
+    def _report(self) -> None:
+        """Tell the leader's watchdog the last call this follower finished, unless the previous
+        report is still on its way (then the idle loop sends it later). Reports go at most
+        every ``REPORT_S``: testing the previous one costs more than a call."""
+        self._next_report = time.monotonic() + REPORT_S
+        if self._done.Test():
+            self._done_sequence[0] = self._sequence
+            self._done.Start()
+            self._unreported = False
 
     # both sides ------------------------------------------------------------------------
     def execute(self, obj: Any, function: Callable, args: tuple, kwargs: dict) -> Any:
@@ -436,8 +455,6 @@ class Coordinator:
         return self
 
     def _close(self) -> None:
-        if self._done is not None:
-            self._done.Wait()
         if self._watchdog is not None:
             self._watchdog.stop()
         for request in [*self._sending, self._receiving, self._done]:
@@ -458,9 +475,9 @@ class Coordinator:
             if self.size == 1:
                 pass
             elif kind is None:
+                self._send(_STOP, 0, b"")
                 if self._watchdog is not None:
                     self._watchdog.wait_for_everyone(self._sequence)
-                self._send(_STOP, 0, b"")
             elif issubclass(kind, SystemExit):
                 self._send(_EXIT, _exit_status(value.code), b"")
             elif interrupted:
@@ -495,10 +512,11 @@ def _timeout_from_environment() -> float | None:
 class _Watchdog:
     """The leader's thread that aborts every rank when a parallel call overstays ``timeout``.
 
-    The leader records when each call started (by sequence number) and when it finished it
-    itself; followers report each finished call in a small message on ``channel``. Every
-    ``timeout / 4`` seconds (at most 0.25 s) the thread reads those reports; a rank whose oldest
-    unfinished call started more than ``timeout`` seconds ago ends the job.
+    The leader notes when each call started and that it finished it itself; each follower
+    reports the last call it finished in a small message on ``channel``. Every ``timeout / 4``
+    seconds (at most 0.25 s) the thread reads the reports and forgets the calls every rank has
+    finished; if the oldest call left started more than ``timeout`` seconds ago, the ranks that
+    have not finished it end the job.
     """
 
     def __init__(self, channel: MPI.Comm, timeout: float):
@@ -506,50 +524,50 @@ class _Watchdog:
             raise CoordinationError("the watchdog needs MPI initialised with THREAD_MULTIPLE")
         self.channel = channel
         self.timeout = timeout
+        self.interval = min(timeout / 4, 0.25)
         self._finished = [0] * channel.size  # rank -> the last call it finished
-        self._calls: dict[int, tuple[str, float]] = {}  # unfinished: sequence -> (name, start)
-        self._lock = threading.Lock()
-        self._stopping = threading.Event()
+        self._calls: collections.deque[tuple[int, Any, Callable, float]] = collections.deque()
+        self._wake = threading.Event()
+        self._stopping = False
         self._thread = threading.Thread(target=self._watch, name="physicsrl-watchdog", daemon=True)
         self._thread.start()
 
-    def started(self, sequence: int, name: str) -> None:
-        with self._lock:
-            self._calls[sequence] = (name, time.monotonic())
+    def started(self, sequence: int, obj: Any, function: Callable) -> None:
+        self._calls.append((sequence, obj, function, time.monotonic()))
 
     def finished(self, rank: int, sequence: int) -> None:
-        with self._lock:
-            self._finished[rank] = max(self._finished[rank], sequence)
-            oldest = min(self._finished)
-            for done in [s for s in self._calls if s <= oldest]:
-                del self._calls[done]
+        self._finished[rank] = sequence
 
     def wait_for_everyone(self, sequence: int) -> None:
-        """Block until every rank has finished call ``sequence`` (or the watchdog aborts)."""
+        """Block until every rank has reported call ``sequence`` (or the watchdog aborts)."""
+        self._finished[0] = sequence
+        self.interval = 1e-3
         while min(self._finished) < sequence:
+            self._wake.set()
             time.sleep(1e-3)
 
     def stop(self) -> None:
-        self._stopping.set()
+        self._stopping = True
+        self._wake.set()
         self._thread.join()
 
     def _watch(self) -> None:
         report = np.zeros(1, dtype=np.int32)
         status = MPI.Status()
-        while not self._stopping.wait(min(self.timeout / 4, 0.25)):
+        while not self._stopping:
+            self._wake.wait(self.interval)
+            self._wake.clear()
             while self.channel.Iprobe(MPI.ANY_SOURCE, _DONE_TAG, status):
                 self.channel.Recv(report, status.Get_source(), _DONE_TAG)
-                self.finished(status.Get_source(), int(report[0]))
-            with self._lock:
-                overdue = [
-                    (s, name)
-                    for s, (name, start) in self._calls.items()
-                    if time.monotonic() - start > self.timeout
-                ]
-                if not overdue:
-                    continue
-                sequence, name = min(overdue)
-                late = [r for r, done in enumerate(self._finished) if done < sequence]
+                self._finished[status.Get_source()] = int(report[0])
+            everyone = min(self._finished)
+            while self._calls and self._calls[0][0] <= everyone:
+                self._calls.popleft()
+            if not self._calls or time.monotonic() - self._calls[0][3] < self.timeout:
+                continue
+            sequence, obj, function, _ = self._calls[0]
+            late = [rank for rank, done in enumerate(self._finished) if done < sequence]
+            name = f"{type(obj).__name__}.{function.__name__}"
             sys.stderr.write(
                 f"watchdog: parallel call {name} (call {sequence}) has not finished after "
                 f"{self.timeout:g} s on ranks {late}; aborting every rank\n"
