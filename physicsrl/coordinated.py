@@ -29,7 +29,12 @@ with cloudpickle as the fallback for lambdas and closures; no-argument calls pic
 
 Failures never hang the job: an exception in a parallel method ends every rank with
 ``MPI.Abort`` after printing the traceback once, and an exception in leader-only code inside
-the ``with`` block releases the followers, which exit with status 1.
+the ``with`` block releases the followers, which exit with status 1. ``sys.exit(k)`` on the
+leader inside the block is not a fault: every rank exits with status k, silently; a
+``KeyboardInterrupt`` there ends every rank with status 130 and one line. A call that never
+finishes on some ranks (a collective entered by some ranks only) is caught by the opt-in
+watchdog (``timeout`` seconds, or the ``PHYSICSRL_TIMEOUT`` environment variable), which aborts
+every rank with one line naming the call and the ranks that had not finished it.
 
 Idle followers poll a non-blocking receive: they spin for ``spin_s`` seconds after the last
 call, then sleep with a growing interval of at most ``max_sleep_s``, so a follower waiting
@@ -38,12 +43,14 @@ while the leader trains uses a small fraction of a core.
 
 from __future__ import annotations
 
+import collections
 import functools
 import hashlib
 import os
 import pickle
 import struct
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Hashable
@@ -66,11 +73,14 @@ __all__ = [
 
 INLINE_BYTES = 240
 _HEADER = struct.Struct("<4i")  # route, flags, payload length, sequence number
-_STOP, _FAIL = -1, -2
+_STOP, _FAIL, _EXIT = -1, -2, -3  # _EXIT carries the leader's exit status in the flags
 _PICKLE, _CLOUDPICKLE, _DEFINE = 1, 2, 4
-_TAG = 17
+_TAG, _DONE_TAG = 17, 18
+REPORT_S = 0.01  # a follower under the watchdog reports finished calls at most this often
+INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
 
 CHECK_ENV = "PHYSICSRL_CHECK_SEQUENCE"
+TIMEOUT_ENV = "PHYSICSRL_TIMEOUT"
 
 
 class CoordinationError(RuntimeError):
@@ -148,6 +158,12 @@ class Coordinator:
         Verify after every call that all ranks executed the same sequence of parallel methods
         (costs one ``allgather`` per call). Defaults to the ``PHYSICSRL_CHECK_SEQUENCE``
         environment variable.
+    timeout:
+        Seconds after which a parallel call that some ranks have not finished aborts the job
+        with one line naming the call and those ranks; None (the default, or the
+        ``PHYSICSRL_TIMEOUT`` environment variable) turns the watchdog off at no cost. The
+        leader's value is used on every rank. When on, every follower sends the leader one
+        small message per call, and a thread on the leader checks them.
     """
 
     def __init__(
@@ -156,6 +172,7 @@ class Coordinator:
         spin_s: float = 0.05,
         max_sleep_s: float = 0.002,
         check: bool | None = None,
+        timeout: float | None = None,
     ):
         self.comm = comm
         self.rank = comm.rank
@@ -178,6 +195,14 @@ class Coordinator:
         self.spin_s = spin_s
         self.max_sleep_s = max_sleep_s
         self.check = bool(int(os.environ.get(CHECK_ENV, "0"))) if check is None else check
+        self.timeout = _timeout_from_environment() if timeout is None else timeout
+        if self.timeout is not None and not self.timeout > 0:
+            raise CoordinationError(f"timeout={self.timeout}: must be a number of seconds > 0")
+        self._watchdog: _Watchdog | None = None  # the leader's, while the watchdog is on
+        self._done: MPI.Prequest | None = None  # a follower's report of a finished call
+        self._done_sequence = np.zeros(1, dtype=np.int32)
+        self._unreported = False  # a finished call waits for the previous report to go out
+        self._next_report = 0.0  # time.monotonic() of the next report
         self.objects: dict[Hashable, Any] = {}
         self.depth = 0  # >0 while a parallel method runs: nested calls are not re-sent
         self.direct = False  # calls need no coordination: one rank, or nested (fast path)
@@ -227,6 +252,12 @@ class Coordinator:
                 )
             if self.rank == 0 and self.size > 1:
                 self.broadcast(obj._namespace, function.__name__, args, kwargs)
+                if self._watchdog is not None:
+                    self._watchdog.started(self._sequence, obj, function)
+                    try:
+                        return self.execute(obj, function, args, kwargs)
+                    finally:
+                        self._watchdog.finished(0, self._sequence)
         return self.execute(obj, function, args, kwargs)
 
     def broadcast(
@@ -284,6 +315,8 @@ class Coordinator:
                     while not test():
                         time.sleep(sleep)
                         sleep = min(2 * sleep, self.max_sleep_s)
+                        if self._unreported:
+                            self._report()
                     break
         self._forward()
         route, flags, n, self._sequence = _HEADER.unpack_from(self._message)
@@ -298,9 +331,16 @@ class Coordinator:
         while True:
             route, flags, payload = self._receive()
             if route == _STOP:
+                if self._done is not None:  # the leader waits for this last report
+                    self._done.Wait()
+                    self._done_sequence[0] = self._sequence
+                    self._done.Start()
+                    self._done.Wait()
                 return
             if route == _FAIL:
                 raise SystemExit(1)  # the leader failed and printed its traceback
+            if route == _EXIT:
+                raise SystemExit(flags)  # the leader exits with this status: so do we
             try:
                 if flags & _DEFINE:
                     n = int.from_bytes(payload[:4], "little")
@@ -326,6 +366,20 @@ class Coordinator:
                 # that the traceback is printed once.
                 time.sleep(1.0)
                 _fail(self.comm, "exception in a parallel method on a follower")
+            if self._done is not None:
+                self._unreported = True
+                if time.monotonic() >= self._next_report:
+                    self._report()
+
+    def _report(self) -> None:
+        """Tell the leader's watchdog the last call this follower finished, unless the previous
+        report is still on its way (then the idle loop sends it later). Reports go at most
+        every ``REPORT_S``: testing the previous one costs more than a call."""
+        self._next_report = time.monotonic() + REPORT_S
+        if self._done.Test():
+            self._done_sequence[0] = self._sequence
+            self._done.Start()
+            self._unreported = False
 
     # both sides ------------------------------------------------------------------------
     def execute(self, obj: Any, function: Callable, args: tuple, kwargs: dict) -> Any:
@@ -385,6 +439,13 @@ class Coordinator:
                 _bind_directly(obj)
         # Persistent requests: a third of the cost of a fresh Send/Irecv per message.
         self._sending = [self._channel.Send_init(self._message, c, _TAG) for c in self._children]
+        if self.size > 1:
+            self.timeout = self._channel.bcast(self.timeout, 0)
+        if self.timeout is not None and self.size > 1:
+            if self.rank == 0:
+                self._watchdog = _Watchdog(self._channel, self.timeout)
+            else:
+                self._done = self._channel.Send_init(self._done_sequence, 0, _DONE_TAG)
         if self.rank != 0:
             self._receiving = self._channel.Recv_init(self._message, self._parent, _TAG)
             try:
@@ -394,10 +455,12 @@ class Coordinator:
         return self
 
     def _close(self) -> None:
-        for request in [*self._sending, self._receiving]:
+        if self._watchdog is not None:
+            self._watchdog.stop()
+        for request in [*self._sending, self._receiving, self._done]:
             if request:
                 request.Free()
-        self._sending, self._receiving = [], None
+        self._sending, self._receiving, self._done, self._watchdog = [], None, None, None
         if self._local:
             for obj in self.objects.values():
                 _unbind(obj)
@@ -407,12 +470,112 @@ class Coordinator:
     def __exit__(self, kind, value, tb) -> bool:
         if self.rank != 0:
             return False
+        interrupted = kind is not None and issubclass(kind, KeyboardInterrupt) and self.size > 1
         try:
-            if self.size > 1:
-                self._send(_STOP if kind is None else _FAIL, 0, b"")
+            if self.size == 1:
+                pass
+            elif kind is None:
+                self._send(_STOP, 0, b"")
+                if self._watchdog is not None:
+                    self._watchdog.wait_for_everyone(self._sequence)
+            elif issubclass(kind, SystemExit):
+                self._send(_EXIT, _exit_status(value.code), b"")
+            elif interrupted:
+                self._send(_EXIT, INTERRUPTED, b"")
+            else:
+                self._send(_FAIL, 0, b"")
         finally:
             self._close()
+        if interrupted:
+            sys.stderr.write(f"interrupted: every rank exits with status {INTERRUPTED}\n")
+            raise SystemExit(INTERRUPTED) from None
         return False
+
+
+def _exit_status(code: Any) -> int:
+    """The process exit status of ``SystemExit(code)``, as Python computes it."""
+    if code is None:
+        return 0
+    return code if isinstance(code, int) else 1
+
+
+def _timeout_from_environment() -> float | None:
+    text = os.environ.get(TIMEOUT_ENV, "").strip()
+    if not text:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise CoordinationError(f"{TIMEOUT_ENV}={text!r}: must be a number of seconds") from None
+
+
+class _Watchdog:
+    """The leader's thread that aborts every rank when a parallel call overstays ``timeout``.
+
+    The leader notes when each call started and that it finished it itself; each follower
+    reports the last call it finished in a small message on ``channel``. Every ``timeout / 4``
+    seconds (at most 0.25 s) the thread reads the reports and forgets the calls every rank has
+    finished; if the oldest call left started more than ``timeout`` seconds ago, the ranks that
+    have not finished it end the job.
+    """
+
+    def __init__(self, channel: MPI.Comm, timeout: float):
+        if MPI.Query_thread() < MPI.THREAD_MULTIPLE:
+            raise CoordinationError("the watchdog needs MPI initialised with THREAD_MULTIPLE")
+        self.channel = channel
+        self.timeout = timeout
+        self.interval = min(timeout / 4, 0.25)
+        self._finished = [0] * channel.size  # rank -> the last call it finished
+        self._calls: collections.deque[tuple[int, Any, Callable, float]] = collections.deque()
+        self._wake = threading.Event()
+        self._stopping = False
+        self._thread = threading.Thread(target=self._watch, name="physicsrl-watchdog", daemon=True)
+        self._thread.start()
+
+    def started(self, sequence: int, obj: Any, function: Callable) -> None:
+        self._calls.append((sequence, obj, function, time.monotonic()))
+
+    def finished(self, rank: int, sequence: int) -> None:
+        self._finished[rank] = sequence
+
+    def wait_for_everyone(self, sequence: int) -> None:
+        """Block until every rank has reported call ``sequence`` (or the watchdog aborts)."""
+        self._finished[0] = sequence
+        self.interval = 1e-3
+        while min(self._finished) < sequence:
+            self._wake.set()
+            time.sleep(1e-3)
+
+    def stop(self) -> None:
+        self._stopping = True
+        self._wake.set()
+        self._thread.join()
+
+    def _watch(self) -> None:
+        report = np.zeros(1, dtype=np.int32)
+        status = MPI.Status()
+        while not self._stopping:
+            self._wake.wait(self.interval)
+            self._wake.clear()
+            while self.channel.Iprobe(MPI.ANY_SOURCE, _DONE_TAG, status):
+                self.channel.Recv(report, status.Get_source(), _DONE_TAG)
+                self._finished[status.Get_source()] = int(report[0])
+            everyone = min(self._finished)
+            while self._calls and self._calls[0][0] <= everyone:
+                self._calls.popleft()
+            if not self._calls or time.monotonic() - self._calls[0][3] < self.timeout:
+                continue
+            sequence, obj, function, _ = self._calls[0]
+            late = [rank for rank, done in enumerate(self._finished) if done < sequence]
+            name = f"{type(obj).__name__}.{function.__name__}"
+            sys.stderr.write(
+                f"watchdog: parallel call {name} (call {sequence}) has not finished after "
+                f"{self.timeout:g} s on ranks {late}; aborting every rank\n"
+            )
+            sys.stderr.flush()
+            time.sleep(0.2)  # let the launcher forward the line before Abort tears the job down
+            self.channel.Abort(1)
+            os._exit(1)
 
 
 class _Unregistered:

@@ -6,6 +6,8 @@ under the ``mpiexec`` that belongs to the installed MPI. All ranks then agree on
 directory (Hydra's default is a per-process timestamp, and ranks start seconds apart), only the
 leader writes Hydra's files and logs, and an exception on any rank ends every rank with a
 non-zero exit instead of leaving the others waiting (Hydra alone would catch it and exit 1).
+Bad launch requests (``mpi.ranks=abc``, a run directory that cannot be written) end every rank
+with status 2 and one line from the leader, before any work.
 """
 
 from __future__ import annotations
@@ -17,17 +19,21 @@ import sys
 from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
+from typing import NoReturn
 
-RANKS = re.compile(r"^\+{0,2}mpi\.ranks=(\d+)$")
+RANKS = re.compile(r"^\+{0,2}mpi\.ranks=(.*)$")
 LAUNCHER_SIZE = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS")
+LAUNCHER_RANK = ("PMI_RANK", "OMPI_COMM_WORLD_RANK", "PMIX_RANK", "SLURM_PROCID")
 CONFIGS = "pkg://physicsrl.conf"
+# Hydra flags that print something and run no job: only the leader runs them.
+PRINT_ONLY = ("help", "hydra_help", "cfg", "info", "shell_completion")
 
 
-class LaunchError(SystemExit):
-    """A bad launch request: exits with status 2 and a one-line message."""
-
-    def __init__(self, message: str):
-        super().__init__(f"error: {message}")
+def refuse(message: str) -> NoReturn:
+    """End this rank with status 2; the leader prints ``error: message`` (one line per job)."""
+    if launched_rank() == 0:
+        print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(2)
 
 
 def launched_size() -> int | None:
@@ -38,15 +44,25 @@ def launched_size() -> int | None:
     return None
 
 
+def launched_rank() -> int:
+    """This process's rank as the MPI launcher numbered it (0 without a launcher)."""
+    for variable in LAUNCHER_RANK:
+        if variable in os.environ:
+            return int(os.environ[variable])
+    return 0
+
+
 def requested_ranks(overrides: list[str]) -> int | None:
     """The last ``mpi.ranks=N`` among the command-line overrides."""
     ranks = None
     for override in overrides:
         if match := RANKS.match(override):
-            ranks = int(match.group(1))
-    if ranks is not None and ranks < 1:
-        raise LaunchError(f"mpi.ranks={ranks}: the number of ranks must be at least 1")
-    return ranks
+            ranks = match.group(1)
+    if ranks is None:
+        return None
+    if not ranks.strip().isdigit() or int(ranks) < 1:
+        refuse(f"mpi.ranks={ranks}: the number of ranks must be an integer >= 1")
+    return int(ranks)
 
 
 def mpiexec() -> str:
@@ -54,7 +70,7 @@ def mpiexec() -> str:
     beside = Path(sys.executable).with_name("mpiexec")
     found = str(beside) if beside.exists() else shutil.which("mpiexec")
     if found is None:
-        raise LaunchError("mpi.ranks needs mpiexec, which is neither beside python nor on PATH")
+        refuse("mpi.ranks needs mpiexec, which is neither beside python nor on PATH")
     return found
 
 
@@ -68,7 +84,7 @@ def relaunch(overrides: list[str]) -> None:
     if ranks is None or ranks == (size or 1):
         return
     if size is not None:
-        raise LaunchError(f"mpi.ranks={ranks}, but the MPI launcher started {size} ranks")
+        refuse(f"mpi.ranks={ranks}, but the MPI launcher started {size} ranks")
     os.environ["PYTHONUNBUFFERED"] = "1"
     command = [mpiexec(), "-n", str(ranks), sys.executable, sys.argv[0], *sys.argv[1:]]
     os.execv(command[0], command)
@@ -91,6 +107,8 @@ def run_hydra(config_name: str, task: Callable, arguments: list[str]) -> None:
     from hydra._internal.utils import get_args_parser
 
     parsed, unknown = get_args_parser().parse_known_args(arguments)
+    if comm.rank != 0 and any(getattr(parsed, flag) for flag in PRINT_ONLY):
+        return
     given = parsed.overrides + [u for u in unknown if not u.startswith("-")]
     flags = [argument for argument in arguments if argument not in given]
     extra = [f"hydra.job.name={config_name}"]  # names the log file
@@ -105,7 +123,8 @@ def run_hydra(config_name: str, task: Callable, arguments: list[str]) -> None:
         with abort_on_error(comm):
             task(cfg)
 
-    sys.argv = [sys.argv[0], *flags, *given, *extra]
+    # Flags last: a bare ``--info`` would take the next override as its value.
+    sys.argv = [sys.argv[0], *given, *extra, *flags]
     hydra.main(config_path=CONFIGS, config_name=config_name, version_base=None)(guarded)()
 
 

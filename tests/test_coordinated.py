@@ -111,3 +111,54 @@ def test_idle_follower_does_not_spin_a_core(mpi):
     result = mpi(2, "tests/mpi_scripts/coord_misc.py", "idle", timeout=60)
     share = float(re.search(r"follower cpu ([0-9.]+)", result.stderr).group(1))
     assert share < 0.10, f"an idle follower used {share:.1%} of a core"
+
+
+@pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.parametrize("status", [0, 3])
+def test_leader_sys_exit_is_every_rank_exit_status(mpi, ranks, status):
+    result = mpi(
+        ranks, "tests/mpi_scripts/coord_exit.py", f"exit-{status}", timeout=30, check=False
+    )
+    assert result.returncode == status, result.stderr
+    assert "Traceback" not in result.stderr and "finished" not in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_keyboard_interrupt_in_leader_code_ends_every_rank_with_130(mpi, ranks):
+    result = mpi(ranks, "tests/mpi_scripts/coord_exit.py", "interrupt", timeout=30, check=False)
+    assert result.returncode == 130, result.stderr
+    assert result.stderr.strip() == "interrupted: every rank exits with status 130"
+
+
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_watchdog_aborts_a_call_that_some_ranks_never_finish(mpi, ranks):
+    start = time.perf_counter()
+    result = mpi(
+        ranks,
+        "tests/mpi_scripts/coord_exit.py",
+        "followers-collective",
+        timeout=30,
+        check=False,
+        env={"PHYSICSRL_TIMEOUT": "1"},
+    )
+    assert result.returncode != 0
+    assert time.perf_counter() - start < 10
+    followers = list(range(1, ranks))
+    line = (
+        f"watchdog: parallel call Job.step (call 2) has not finished after 1 s on ranks "
+        f"{followers}; aborting every rank"
+    )
+    assert result.stderr.count("watchdog:") == 1 and line in result.stderr, result.stderr
+
+
+def test_watchdog_lets_calls_that_finish_run_to_the_end(mpi):
+    result = mpi(2, "tests/mpi_scripts/coord_exit.py", "watched", env={"PHYSICSRL_TIMEOUT": "1"})
+    assert result.stderr.count("finished") == 2, result.stderr
+
+
+def test_bad_timeout_is_refused(monkeypatch):
+    monkeypatch.setenv("PHYSICSRL_TIMEOUT", "soon")
+    with pytest.raises(CoordinationError, match="PHYSICSRL_TIMEOUT='soon': must be a number"):
+        Coordinator()
+    with pytest.raises(CoordinationError, match="timeout=-1: must be a number of seconds > 0"):
+        Coordinator(timeout=-1)

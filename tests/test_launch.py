@@ -66,11 +66,60 @@ def test_unknown_benchmark_is_a_one_line_error(tmp_path):
 
 
 def test_an_exception_inside_a_hydra_command_ends_every_rank(tmp_path):
-    # calls=abc reaches range() on every rank: Hydra alone would catch it and leave ranks waiting
-    launch = [str(BIN / "physicsrl-bench"), "ping", "calls=abc", "mpi.ranks=2"]
-    result = run(launch, cwd=tmp_path, timeout=30)
+    # rhs=bogus raises in the simulator on every rank: Hydra alone would catch it and leave
+    # ranks waiting
+    settings = ["grid.n=4", "steps=1", "baseline=false", "+rhs=bogus", "mpi.ranks=2"]
+    result = run([str(BIN / "physicsrl-bench"), "ms", *settings], cwd=tmp_path, timeout=60)
     assert result.returncode != 0
-    assert "TypeError" in result.stderr
+    assert "rhs must be 'compiled', 'numpy' or 'form', got 'bogus'" in result.stderr
+
+
+@pytest.mark.parametrize(
+    "settings, message",
+    [
+        (["ping", "calls=-5"], "calls=-5: must be an integer >= 1"),
+        (["ping", "calls=0"], "calls=0: must be an integer >= 1"),
+        (["ping", "calls=abc", "mpi.ranks=2"], "calls=abc: must be an integer >= 1"),
+        (["ping", "repeats=1.5"], "repeats=1.5: must be an integer >= 1"),
+        (["ping", "idle_seconds=nan"], "idle_seconds=nan: must be a finite number >= 0.0"),
+        (["ms", "grid.n=1"], "grid.n=1: must be an integer >= 2"),
+        (["ms", "baseline=maybe"], "baseline=maybe: must be true or false"),
+        (["env", "decisions=0", "mpi.ranks=2"], "decisions=0: must be an integer >= 1"),
+        (["ping", "mpi.ranks=abc"], "mpi.ranks=abc: the number of ranks must be an integer >= 1"),
+        (["ping", "mpi.ranks=-1"], "mpi.ranks=-1: the number of ranks must be an integer >= 1"),
+    ],
+)
+def test_bad_benchmark_settings_are_one_line_errors(tmp_path, settings, message):
+    result = run([str(BIN / "physicsrl-bench"), *settings], cwd=tmp_path, timeout=60)
+    assert (result.returncode, result.stderr, result.stdout) == (2, f"error: {message}\n", "")
+
+
+@pytest.mark.parametrize("ranks", ["mpi.ranks=1", "mpi.ranks=2"])
+@pytest.mark.parametrize("where", ["proc", "file"])
+def test_a_run_directory_that_cannot_be_written_ends_every_rank_in_one_line(tmp_path, ranks, where):
+    (tmp_path / "a-file").write_text("")
+    directory = {"proc": "/proc/forbidden", "file": str(tmp_path / "a-file" / "run")}[where]
+    launch = [str(BIN / "physicsrl-bench"), "ping", *QUICK, f"hydra.run.dir={directory}", ranks]
+    result = run(launch, cwd=tmp_path, timeout=60)
+    assert result.returncode == 2, result.stderr
+    [line] = result.stderr.splitlines()
+    assert line.startswith(f"error: hydra.run.dir={directory}: cannot write the run directory")
+
+
+def test_a_sweep_directory_that_cannot_be_written_is_one_line(tmp_path):
+    launch = [str(BIN / "physicsrl-bench"), "ping", "-m", "calls=10,20", "hydra.sweep.dir=/proc/x"]
+    result = run([*launch, "mpi.ranks=2"], cwd=tmp_path, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith("error: hydra.sweep.dir=/proc/x: cannot write the run")
+    assert len(result.stderr.splitlines()) == 1
+
+
+def test_print_only_flags_print_once_under_two_ranks(tmp_path):
+    bench = str(BIN / "physicsrl-bench")
+    config = run([bench, "ping", "--cfg", "job", "mpi.ranks=2"], cwd=tmp_path, timeout=60)
+    assert config.returncode == 0 and config.stdout.count("calls: 200000") == 1, config.stdout
+    info = run([bench, "ping", "--info"], cwd=tmp_path, timeout=60)
+    assert info.returncode == 0 and "Defaults List" in info.stdout, info.stderr
 
 
 def test_configs_are_found_from_a_built_wheel(tmp_path):

@@ -36,6 +36,7 @@ from physicsrl.fem import MonodomainMitchellSchaeffer, default_ms_mesh
 
 DT = 0.03
 STIMULUS_STEPS = 30
+SETTINGS = {"grid.n": (int, 2), "steps": (int, 1), "baseline": (bool, None)}
 
 
 def w0(x):

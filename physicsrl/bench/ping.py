@@ -5,8 +5,9 @@ re-implementation of the report's design (pickled dict sent with ``comm.bcast``,
 ``getattr``) as the baseline; and the floor, a 16-byte buffer ``Bcast`` per call. Each method
 makes ``calls`` no-op calls (and a variant with a float and a short tuple as arguments); the
 time per call is the leader's wall time from a barrier before the first call to a barrier after
-the followers have run the last one. Also measured: the CPU use of a follower while the leader
-is idle (training, say) for ``idle_seconds``.
+the followers have run the last one. Also measured: physicsrl with its watchdog on (the
+``timeout`` option: one report message per call and follower), and the CPU use of a follower
+while the leader is idle (training, say) for ``idle_seconds``.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ from physicsrl.coordinated import Coordinated, Coordinator, parallel
 
 SMALL_ARGUMENT = (1.5, (1, 2))
 IDLE = "idle follower CPU (fraction of a core)"
+WATCHDOG_S = 600.0  # long enough never to fire: only its cost is measured
+SETTINGS = {"calls": (int, 1), "repeats": (int, 1), "idle_seconds": (float, 0.0)}
 
 
 class PingEnvironment(Coordinated):
@@ -84,8 +87,11 @@ def run(cfg) -> list[dict]:
     comm = MPI.COMM_WORLD
     coordinator, report = Coordinator(comm), ReportCoordinator(comm)
     ours, theirs = PingEnvironment(coordinator), ReportPingEnvironment(report)
+    watched = Coordinator(comm, timeout=WATCHDOG_S)
+    ours_watched = PingEnvironment(watched)
     methods = {
         "physicsrl": lambda: time_calls(comm, coordinator, ours, (), cfg.calls),
+        "physicsrl, watchdog on": lambda: time_calls(comm, watched, ours_watched, (), cfg.calls),
         "report design": lambda: time_calls(comm, report, theirs, (), cfg.calls),
         "floor (Bcast 16 B)": lambda: time_floor(comm, cfg.calls),
         "physicsrl, small argument": lambda: time_calls(

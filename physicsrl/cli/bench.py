@@ -1,7 +1,8 @@
 """``physicsrl-bench NAME [overrides]``: the benchmarks, beside their baselines, as tables.
 
 Each benchmark ``NAME`` is the module ``physicsrl.bench.NAME`` (``run(cfg) -> rows``, and
-optionally ``goals(rows)``) with the config ``conf/bench_NAME.yaml``. The leader prints the table
+optionally ``goals(rows)`` and ``SETTINGS``, the type and least value of each setting, checked
+before any work) with the config ``conf/bench_NAME.yaml``. The leader prints the table
 and the goals and writes ``NAME.csv`` and ``NAME.json`` (with the command line) into the run
 directory.
 """
@@ -11,10 +12,11 @@ from __future__ import annotations
 import csv
 import importlib
 import json
+import math
 import shlex
 import sys
 
-from physicsrl.launch import output_dir, relaunch, run_hydra
+from physicsrl.launch import output_dir, refuse, relaunch, run_hydra
 
 BENCHMARKS = {
     "ping": "cost of one parallel call (report section 3.5)",
@@ -33,6 +35,25 @@ def format_table(rows: list[dict]) -> str:
     widths = [max(len(line[i]) for line in cells) for i in range(len(columns))]
     lines = ("  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in cells)
     return "\n".join(lines)
+
+
+def check_settings(cfg, settings: dict[str, tuple[type, float | None]]) -> None:
+    """Refuse, in one line, a setting that is not of its type (int, float or bool) or is below
+    its least value (None: no bound)."""
+    from omegaconf import OmegaConf
+
+    for key, (kind, least) in settings.items():
+        value = OmegaConf.select(cfg, key)
+        allowed = (int, float) if kind is float else kind
+        if kind is bool:
+            ok = isinstance(value, bool)
+        else:
+            ok = isinstance(value, allowed) and not isinstance(value, bool)
+            ok = ok and math.isfinite(value) and (least is None or value >= least)
+        if not ok:
+            what = {int: "an integer", float: "a finite number", bool: "true or false"}[kind]
+            bound = f" >= {least}" if least is not None and kind is not bool else ""
+            refuse(f"{key}={value}: must be {what}{bound}")
 
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
@@ -66,6 +87,7 @@ def main() -> None:
     def task(cfg) -> None:
         from mpi4py import MPI
 
+        check_settings(cfg, getattr(module, "SETTINGS", {}))
         rows = module.run(cfg)
         if MPI.COMM_WORLD.rank == 0:
             report(name, rows, module.goals(rows) if hasattr(module, "goals") else [])

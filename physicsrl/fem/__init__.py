@@ -19,11 +19,13 @@ from physicsrl.fem.integrals import (  # noqa: E402
     quadrant_weights,
 )
 from physicsrl.fem.monodomain import MonodomainMitchellSchaeffer, default_ms_mesh  # noqa: E402
+from physicsrl.fem.output import FieldRecorder  # noqa: E402
 from physicsrl.fem.plot import plot_field  # noqa: E402
 from physicsrl.fem.time_problem import DEFAULT_PETSC_OPTIONS, TimeProblem  # noqa: E402
 
 __all__ = [
     "DEFAULT_PETSC_OPTIONS",
+    "FieldRecorder",
     "HeatEnvironment",
     "InvalidValue",
     "MonodomainMitchellSchaeffer",

@@ -33,18 +33,33 @@ def plot_field(
     gathered = comm.gather(local, root=0)
     if comm.rank != 0:
         return
+    x, y, values = np.concatenate(gathered).T
+    plot_points(x, y, values, path, function.name, title, t, limits)
+
+
+def plot_points(
+    x: np.ndarray,
+    y: np.ndarray,
+    values: np.ndarray,
+    path: str | Path,
+    name: str,
+    title: str | None = None,
+    t: float | None = None,
+    limits: tuple[float, float] | None = None,
+) -> None:
+    """Write the values at the points (x, y) (each of shape (n,)) as a PNG; the colour bar is
+    labelled ``name``, the title and limits as in :func:`plot_field`. Not collective."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.tri import Triangulation
 
-    x, y, values = np.concatenate(gathered).T
     figure, axes = plt.subplots(figsize=(6, 5))
     vmin, vmax = limits if limits is not None else (values.min(), values.max())
     image = axes.tripcolor(Triangulation(x, y), values, shading="gouraud", vmin=vmin, vmax=vmax)
-    figure.colorbar(image, ax=axes, label=function.name)
-    heading = title if title is not None else function.name
+    figure.colorbar(image, ax=axes, label=name)
+    heading = title if title is not None else name
     axes.set_title(heading if t is None else f"{heading}, t = {t:g}")
     axes.set_aspect("equal")
     axes.set_xlabel("x")

@@ -1,0 +1,50 @@
+"""The Hydra callback that checks the run directory can be written before Hydra writes there.
+
+Named in ``conf/common.yaml`` (``hydra.callbacks``); a module of its own so that importing
+:mod:`physicsrl.launch` (before an MPI re-launch) does not import Hydra.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from hydra.experimental.callback import Callback
+
+from physicsrl.launch import refuse
+
+
+class WritableRunDirectory(Callback):
+    """Hydra callback (``hydra.callbacks`` in ``common.yaml``): before Hydra writes its files,
+    the leader checks that the run (or sweep) directory can be written; if not, every rank
+    ends with status 2 and one line naming the directory, instead of the leader failing in
+    Hydra's log setup while the followers wait for it."""
+
+    def on_run_start(self, config, **kwargs) -> None:
+        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir)
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        agree_directory_is_writable("hydra.sweep.dir", config.hydra.sweep.dir)
+
+
+def agree_directory_is_writable(key: str, directory: str) -> None:
+    """The leader creates ``directory`` and writes a byte there; every rank learns the outcome
+    (collective) and refuses to go on if it failed."""
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    problem = None
+    if comm.rank == 0:
+        probe = Path(directory) / ".physicsrl-write-test"
+        try:
+            probe.parent.mkdir(parents=True, exist_ok=True)
+            with open(probe, "wb") as stream:
+                stream.write(b"x")
+                stream.flush()
+                os.fsync(stream.fileno())  # a full disk fails here, not at close
+            probe.unlink()
+        except OSError as error:
+            problem = error.strerror or str(error)
+    problem = comm.bcast(problem, 0)
+    if problem is not None:
+        refuse(f"{key}={directory}: cannot write the run directory there ({problem})")

@@ -1,0 +1,43 @@
+"""End the job in the way argv[1] names; the test checks every rank's exit and the output.
+
+``exit-K``: the leader calls ``sys.exit(K)`` inside the with block; ``interrupt``: leader-only
+code raises KeyboardInterrupt; ``followers-collective``: a parallel call enters a barrier on the
+followers only (a hang that the watchdog ends); ``watched``: ordinary calls under the watchdog.
+"""
+
+import sys
+
+from mpi4py import MPI
+
+from physicsrl.coordinated import Coordinated, Coordinator, parallel
+
+how = sys.argv[1]
+comm = MPI.COMM_WORLD
+
+
+class Job(Coordinated):
+    def __init__(self, coordinator):
+        self.register_coordinator(coordinator)
+
+    @parallel
+    def step(self, followers_only_barrier=False):
+        if not followers_only_barrier or comm.rank != 0:
+            comm.Barrier()
+        return comm.rank
+
+
+coordinator = Coordinator()
+job = Job(coordinator)
+with coordinator:
+    if coordinator.is_leader():
+        job.step()
+        if how.startswith("exit-"):
+            sys.exit(int(how.removeprefix("exit-")))
+        if how == "interrupt":
+            raise KeyboardInterrupt
+        if how == "followers-collective":
+            job.step(followers_only_barrier=True)
+        else:
+            for _ in range(100):
+                job.step()
+print(f"rank {comm.rank} finished", file=sys.stderr)
