@@ -41,6 +41,7 @@ from physicsrl.envs.snapshots import SnapshotCache
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
 from physicsrl.fem import MonodomainMitchellSchaeffer, SimulationDiverged
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows
+from physicsrl.fem.monodomain import SCHEMES
 
 WAIT, SHOCK = 0, 1
 
@@ -48,7 +49,8 @@ WAIT, SHOCK = 0, 1
 @dataclass(frozen=True)
 class MSModel:
     """Mitchell-Schaeffer parameters (report section 4.3): time constants, gate threshold,
-    diffusivity (mm^2/ms) and time step."""
+    diffusivity (mm^2/ms), time step, and the time scheme with its sub-steps (see
+    :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`)."""
 
     dt: float = 0.03
     tau_in: float = 0.3
@@ -57,11 +59,16 @@ class MSModel:
     tau_close: float = 80.0
     u_gate: float = 0.13
     D: float = 0.013
+    scheme: str = "implicit"
+    substeps: int = 1
 
     def __post_init__(self):
         for name in ("dt", "tau_in", "tau_out", "tau_open", "tau_close", "D"):
             positive(name, getattr(self, name))
         number("u_gate", self.u_gate)
+        if self.scheme not in SCHEMES:
+            raise ValueError(f"scheme must be one of {SCHEMES}, got {self.scheme!r}")
+        integer("substeps", self.substeps, 1)
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 r"""C kernels of the monodomain model, compiled once with cffi and cached on disk.
 
-Three loops that numpy can only express as many passes over large temporaries:
+Four loops that numpy can only express as many passes over large temporaries:
 
 ``ms_rhs``
     The right-hand side of the Mitchell-Schaeffer step (see
@@ -16,6 +16,10 @@ Three loops that numpy can only express as many passes over large temporaries:
 ``ms_gate``
     The forward-Euler gate update :math:`w^{n+1}_i = a_\mathrm{open} w_i + b_\mathrm{open}` if
     :math:`u_i < u_\mathrm{gate}`, else :math:`a_\mathrm{close} w_i`, into a separate array.
+``ms_explicit``
+    One step of the explicit scheme (:mod:`physicsrl.fem.explicit`): a CSR row product, the
+    nodal reaction and current into a separate array for the owned rows, and the gate update
+    of every local entry in place.
 ``cell_det``
     :math:`|\det J|` at the quadrature points of every cell from the coordinate element's
     derivative table (gdim = tdim = 1, 2, 3), as per-cell values plus the largest relative
@@ -59,6 +63,10 @@ void ms_gate(int64_t n, const double *u, const double *w, double *out, double u_
              double a_open, double b_open, double a_close);
 double cell_det(int64_t num_cells, int gdim, int nq, int nx, const int32_t *x_dofs,
                 const double *x, const double *dphi, double *det, int per_point);
+void ms_explicit(int64_t owned, int64_t local, const int64_t *indptr, const int32_t *indices,
+                 const double *values, const double *u, double *w, const double *current,
+                 double dt, double tau_in, double tau_out, double u_gate, double a_open,
+                 double b_open, double a_close, double *u_next);
 """
 
 _SOURCE = r"""
@@ -155,6 +163,36 @@ void ms_gate(int64_t n, const double *u, const double *w, double *out, double u_
 {
     for (int64_t i = 0; i < n; ++i)
         out[i] = u[i] < u_gate ? w[i] * a_open + b_open : w[i] * a_close;
+}
+
+/* One explicit step (physicsrl.fem.explicit): for the owned rows i,
+   u_next[i] = sum_k values[k] u[indices[k]] (k in the row's CSR range: I - dt D M_L^-1 K)
+               + dt (w u^2 (1 - u) / tau_in - u / tau_out) + current[i] (dt I_i; NULL: none),
+   then the gate of every local entry (owned and ghost) in place, from u and the old w. */
+void ms_explicit(int64_t owned, int64_t local, const int64_t *indptr, const int32_t *indices,
+                 const double *values, const double *u, double *w, const double *current,
+                 double dt, double tau_in, double tau_out, double u_gate, double a_open,
+                 double b_open, double a_close, double *u_next)
+{
+    const double k_in = dt / tau_in, k_out = dt / tau_out;
+#if defined(__SSE__)
+    const unsigned int csr = _mm_getcsr(); /* subnormals to zero, as in ms_rhs */
+    _mm_setcsr(csr | 0x8040);
+#endif
+    for (int64_t i = 0; i < owned; ++i) {
+        double s = 0.0;
+        for (int64_t k = indptr[i]; k < indptr[i + 1]; ++k)
+            s += values[k] * u[indices[k]];
+        const double ui = u[i], wi = w[i];
+        s += ui * (k_in * wi * ui * (1.0 - ui) - k_out);
+        u_next[i] = current ? s + current[i] : s;
+        w[i] = ui < u_gate ? wi * a_open + b_open : wi * a_close;
+    }
+    for (int64_t i = owned; i < local; ++i)
+        w[i] = u[i] < u_gate ? w[i] * a_open + b_open : w[i] * a_close;
+#if defined(__SSE__)
+    _mm_setcsr(csr);
+#endif
 }
 
 /* |det J| at the nq points of every cell; J_ij = sum_a x[x_dofs[a]][i] dphi[j][q][a].
