@@ -344,7 +344,7 @@ def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path):
     numpy kernel and gate update, with the same right-hand side."""
     from physicsrl.fem import kernels
 
-    def no_compiler(name, target):
+    def no_compiler(name, target, cdef, source):
         raise OSError("no C compiler")
 
     monkeypatch.setattr(kernels, "_loaded", False)

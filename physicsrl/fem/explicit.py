@@ -3,8 +3,8 @@ r"""The explicit lumped-mass scheme of the monodomain Mitchell-Schaeffer model.
 Lumped mass :math:`m_i = \sum_j M_{ij} = \int_\Omega \phi_i\,dx` (the row sums of the
 assembled mass matrix, since :math:`\sum_j \phi_j = 1`), stiffness
 :math:`K_{ij} = \int_\Omega \nabla\phi_j \cdot \nabla\phi_i\,dx` (assembled once, this rank's
-owned rows in CSR with local column indices, ghosts included), nodal reaction and nodal
-current. One step of :math:`\Delta t` (a sub-step :math:`\Delta t / k` with ``substeps=k``):
+owned rows with local column indices, ghosts included, padded to one row length), nodal
+reaction and nodal current. One step of :math:`\Delta t` (a sub-step :math:`\Delta t / k` with ``substeps=k``):
 
 .. math::
 
@@ -92,7 +92,16 @@ class ExplicitStep:
         )
         values *= -self.dt * D / self.mass[rows]
         values[indices == rows] += 1.0
-        self.indptr, self.indices, self.values = indptr, indices, values
+        # Rows padded to one width (ELLPACK) with zeros at the diagonal's column.
+        lengths = np.diff(indptr)
+        self.width = int(lengths.max(initial=1))
+        slots = np.arange(indptr[-1]) - np.repeat(indptr[:-1], lengths)
+        self.columns = np.repeat(np.arange(self.owned, dtype=np.int32), self.width).reshape(
+            self.owned, self.width
+        )
+        self.values = np.zeros((self.owned, self.width))
+        self.columns[rows, slots] = indices
+        self.values[rows, slots] = values
         self.constants = (
             self.dt,
             tau_in,
@@ -152,8 +161,8 @@ class ExplicitStep:
             self.kernels.lib.ms_explicit(
                 self.owned,
                 w.size,
-                pointer(ffi, self.indptr, "int64_t *"),
-                pointer(ffi, self.indices, "int32_t *"),
+                self.width,
+                pointer(ffi, self.columns, "int32_t *"),
                 pointer(ffi, self.values),
                 pointer(ffi, u),
                 pointer(ffi, w),
@@ -167,8 +176,7 @@ class ExplicitStep:
     def _numpy_step(self, u, w, current, u_next) -> None:
         dt, tau_in, tau_out, u_gate, a_open, b_open, a_close = self.constants
         n = self.owned
-        rows = np.repeat(np.arange(n), np.diff(self.indptr))
-        diffusion = np.bincount(rows, self.values * u[self.indices], minlength=n)
+        diffusion = np.einsum("ij,ij->i", self.values, u[self.columns])
         own = u[:n]
         u_next[:n] = diffusion + own * (dt / tau_in * w[:n] * own * (1.0 - own) - dt / tau_out)
         if current is not None:
