@@ -14,6 +14,7 @@ from scipy.integrate import solve_ivp
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.fem import MonodomainMitchellSchaeffer, SimulationDiverged, plot_field
+from physicsrl.fem.resolution import planar_front_speed
 
 TAU_IN, TAU_OUT, TAU_OPEN, TAU_CLOSE, U_GATE, D, DT = 0.3, 6.0, 75.0, 80.0, 0.13, 0.013, 0.03
 
@@ -94,38 +95,10 @@ def nagumo_speed() -> float:
     return np.sqrt(D * k / 2) * (b - 2 * a)
 
 
-def front_speed(h: float, dt: float, length: float = 4.0, T: float = 20.0, **model) -> float:
-    """Speed of a planar front in a strip [0, length] x [0, h] of 1 x n quadrilaterals,
-    started by u = 1 on x < 0.3: slope of the front position (where u = 0.5, linear
-    interpolation along x) against time over t in [6, T]. ``model``: keyword arguments of the
-    model (default: the gate frozen, tau_close = 1e9)."""
-    n = round(length / h)
-    domain = mesh.create_rectangle(
-        MPI.COMM_WORLD, [[0, 0], [length, h]], [n, 1], mesh.CellType.quadrilateral
-    )
-    ms = MonodomainMitchellSchaeffer(
-        Coordinator(),
-        domain,
-        u0=lambda x: np.where(x[0] < 0.3, 1.0, 0.0),
-        w0=1.0,
-        dt=dt,
-        **{"tau_close": 1e9, **model},
-    )
-    bottom = np.nonzero(np.isclose(ms.V.tabulate_dof_coordinates()[:, 1], 0.0))[0]
-    x = ms.V.tabulate_dof_coordinates()[bottom, 0]
-    order = np.argsort(x)
-    bottom, x = bottom[order], x[order]
-    times, positions = [], []
-    with ms.coordinator:
-        while ms.t < T - 1e-9:
-            ms.advance_time(round(0.5 / dt) * dt)
-            u = ms.u_n().x.array[bottom]
-            i = np.nonzero(u > 0.5)[0].max()
-            times.append(ms.t)
-            positions.append(x[i] + (u[i] - 0.5) / (u[i] - u[i + 1]) * (x[i + 1] - x[i]))
-    times, positions = np.array(times), np.array(positions)
-    fit = times >= 6.0
-    return np.polyfit(times[fit], positions[fit], 1)[0]
+def front_speed(h: float, dt: float, **model) -> float:
+    """:func:`planar_front_speed` with the gate frozen (tau_close = 1e9) unless ``model``
+    says otherwise."""
+    return planar_front_speed(h, dt, **{"tau_close": 1e9, **model})
 
 
 def test_conduction_velocity_converges_to_the_nagumo_speed():

@@ -4,7 +4,8 @@ Lumped mass :math:`m_i = \sum_j M_{ij} = \int_\Omega \phi_i\,dx` (the row sums o
 assembled mass matrix, since :math:`\sum_j \phi_j = 1`), stiffness
 :math:`K_{ij} = \int_\Omega \nabla\phi_j \cdot \nabla\phi_i\,dx` (assembled once, this rank's
 owned rows with local column indices, ghosts included, padded to one row length), nodal
-reaction and nodal current. One step of :math:`\Delta t` (a sub-step :math:`\Delta t / k` with ``substeps=k``):
+reaction and nodal current. One step of :math:`\Delta t` (a sub-step :math:`\Delta t / k`
+with ``substeps=k``):
 
 .. math::
 
