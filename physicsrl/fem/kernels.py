@@ -19,8 +19,9 @@ Four loops that numpy can only express as many passes over large temporaries:
 ``ms_explicit``
     One step of the explicit scheme (:mod:`physicsrl.fem.explicit`): a row product with the
     operator's owned rows padded to one width (ELLPACK, so that the row loop has a constant
-    length and unrolls), the nodal reaction and current into a separate array
-    for the owned rows, and the gate update of every local entry in place.
+    length and unrolls), the nodal reaction and current, for the owned rows, in place (a new
+    value is held back in a small ring until no later row reads the old one), and the gate
+    update of every local entry in place.
 ``cell_det``
     :math:`|\det J|` at the quadrature points of every cell from the coordinate element's
     derivative table (gdim = tdim = 1, 2, 3), as per-cell values plus the largest relative
@@ -65,9 +66,9 @@ void ms_gate(int64_t n, const double *u, const double *w, double *out, double u_
 double cell_det(int64_t num_cells, int gdim, int nq, int nx, const int32_t *x_dofs,
                 const double *x, const double *dphi, double *det, int per_point);
 void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns,
-                 const double *values, const double *u, double *w, const double *current,
+                 const double *values, double *u, double *w, const double *current,
                  double dt, double tau_in, double tau_out, double u_gate, double a_open,
-                 double b_open, double a_close, double *u_next);
+                 double b_open, double a_close, int64_t lag, double *ring);
 """
 
 _SOURCE = r"""
@@ -166,19 +167,24 @@ void ms_gate(int64_t n, const double *u, const double *w, double *out, double u_
         out[i] = u[i] < u_gate ? w[i] * a_open + b_open : w[i] * a_close;
 }
 
-/* One explicit step (physicsrl.fem.explicit): for the owned rows i,
-   u_next[i] = sum_k C[i][k] u[columns[i][k]] (k < width: the row of C = I - dt D M_L^-1 K,
-               padded with zeros)
-               + dt (w u^2 (1 - u) / tau_in - u / tau_out) + current[i] (dt I_i; NULL: none),
-   then the gate of every local entry (owned and ghost) in place, from u and the old w.
+/* One explicit step (physicsrl.fem.explicit), in place: for the owned rows i,
+   u[i] <- sum_k C[i][k] u[columns[i][k]] (k < width: the row of C = I - dt D M_L^-1 K,
+           padded with zeros)
+           + dt (w u^2 (1 - u) / tau_in - u / tau_out) + current[i] (dt I_i; NULL: none),
+   all from the old u; and the gate of every local entry (owned and ghost) in place, from u
+   and the old w. Row i reads no column below i - lag (lag >= 0), so its new value waits in a
+   ring of lag + 1 values and is written when row i + lag + 1 starts.
    Inlined with constant widths for the common elements, so that the row loop unrolls. */
 static inline __attribute__((always_inline)) void
 explicit_rows(int64_t owned, int64_t local, const int width, const int32_t *columns,
-              const double *values, const double *u, double *w, const double *current,
+              const double *values, double *u, double *w, const double *current,
               double k_in, double k_out, double u_gate, double a_open, double b_open,
-              double a_close, double *u_next)
+              double a_close, int64_t lag, double *ring)
 {
-    for (int64_t i = 0; i < owned; ++i) {
+    const int64_t r = lag + 1;
+    for (int64_t i = 0, slot = 0; i < owned; ++i, slot = slot + 1 == r ? 0 : slot + 1) {
+        if (i >= r)
+            u[i - r] = ring[slot];
         const int32_t *col = columns + i * width;
         const double *val = values + i * width;
         double s = 0.0;
@@ -186,17 +192,19 @@ explicit_rows(int64_t owned, int64_t local, const int width, const int32_t *colu
             s += val[k] * u[col[k]];
         const double ui = u[i], wi = w[i];
         s += ui * (k_in * wi * ui * (1.0 - ui) - k_out);
-        u_next[i] = current ? s + current[i] : s;
+        ring[slot] = current ? s + current[i] : s;
         w[i] = ui < u_gate ? wi * a_open + b_open : wi * a_close;
     }
+    for (int64_t i = owned > r ? owned - r : 0; i < owned; ++i)
+        u[i] = ring[i % r];
     for (int64_t i = owned; i < local; ++i)
         w[i] = u[i] < u_gate ? w[i] * a_open + b_open : w[i] * a_close;
 }
 
 void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns,
-                 const double *values, const double *u, double *w, const double *current,
+                 const double *values, double *u, double *w, const double *current,
                  double dt, double tau_in, double tau_out, double u_gate, double a_open,
-                 double b_open, double a_close, double *u_next)
+                 double b_open, double a_close, int64_t lag, double *ring)
 {
 #if defined(__SSE__)
     const unsigned int csr = _mm_getcsr(); /* subnormals to zero, as in ms_rhs */
@@ -204,7 +212,7 @@ void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns
 #endif
 #define ROWS(WIDTH) explicit_rows(owned, local, WIDTH, columns, values, u, w, current, \
                                   dt / tau_in, dt / tau_out, u_gate, a_open, b_open, a_close, \
-                                  u_next)
+                                  lag, ring)
     if (width == 9)
         ROWS(9); /* Q1 quadrilaterals */
     else if (width == 27)
