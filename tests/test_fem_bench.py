@@ -12,10 +12,11 @@ from physicsrl.bench import ms
 
 
 def test_ms_benchmark_core_on_a_tiny_grid():
-    """20 x 20 cells (the stimulus covers the cells of midpoints x = +-2.5), 40 steps (stimulus in the first 30): one row per implementation with
-    positive step times; the baseline's final u equals physicsrl's implicit one within 1e-8,
-    the floor's equals the explicit one to round-off (the structured stencil is the assembled
-    operator), and the explicit differs from the implicit (another scheme)."""
+    """20 x 20 cells (the stimulus covers the cells of midpoints x = +-2.5), 40 steps
+    (stimulus in the first 30): one row per implementation with positive step times; the
+    baseline's final u equals physicsrl's implicit one within 1e-8, the floor's equals the
+    explicit one to round-off (the structured stencil is the assembled operator), and the
+    explicit differs from the implicit (another scheme)."""
     cfg = {"grid": {"n": 20}, "steps": 40, "baseline": True, "scheme": "both"}
     rows = ms.run(OmegaConf.create(cfg))
     names = ["physicsrl", "physicsrl explicit", "floor (structured C loop)", "report (baseline)"]
