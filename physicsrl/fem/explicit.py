@@ -74,7 +74,7 @@ class ExplicitStep:
 
     ``dt`` is the sub-step; :meth:`check_stable` raises :class:`InvalidValue` (one line) if it
     exceeds :attr:`dt_max`. :meth:`set_current` takes the DG0 current; :meth:`advance` runs
-    steps. ``kernels`` is the compiled module (``None``: numpy and scipy). ``timings`` gets the
+    steps. ``kernels`` is the compiled module (``None``: numpy). ``timings`` gets the
     seconds of the fused passes (``"explicit"``) and of the ghost updates (``"ghosts"``).
     """
 
