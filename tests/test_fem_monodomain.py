@@ -14,6 +14,7 @@ from scipy.integrate import solve_ivp
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.fem import MonodomainMitchellSchaeffer, SimulationDiverged, plot_field
+from physicsrl.fem.resolution import planar_front_speed
 
 TAU_IN, TAU_OUT, TAU_OPEN, TAU_CLOSE, U_GATE, D, DT = 0.3, 6.0, 75.0, 80.0, 0.13, 0.013, 0.03
 
@@ -35,9 +36,10 @@ def upstroke_and_apd(t, u):
     return t_up, t_down - t_up
 
 
-def test_uniform_action_potential_matches_the_ode():
-    """Uniform u, w: diffusion and the implicit solve leave a uniform field unchanged
-    (K 1 = 0, and the exact integral of a constant reaction), so the scheme (4) reduces to
+@pytest.mark.parametrize("scheme", ["implicit", "explicit"])
+def test_uniform_action_potential_matches_the_ode(scheme):
+    """Uniform u, w: diffusion leaves a uniform field unchanged (K 1 = 0; implicit: the exact
+    integral of a constant reaction; explicit: nodal reaction), so both schemes reduce to
     forward Euler on the ODE. We compare (a) with that discrete map, to 1e-9, and (b) with the
     ODE solved by solve_ivp (rtol 1e-10): starting at u = 0.2, w = 1, the upstroke time (u
     reaches 0.5) agrees within 0.05 time units and the action potential duration (u above
@@ -45,7 +47,7 @@ def test_uniform_action_potential_matches_the_ode():
     domain = mesh.create_rectangle(
         MPI.COMM_WORLD, [[0, 0], [1, 1]], [1, 1], mesh.CellType.quadrilateral
     )
-    ms = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=0.2, w0=1.0)
+    ms = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=0.2, w0=1.0, scheme=scheme)
     steps = 12000
     samples = np.empty(steps + 1)
     samples[0] = 0.2
@@ -93,37 +95,10 @@ def nagumo_speed() -> float:
     return np.sqrt(D * k / 2) * (b - 2 * a)
 
 
-def front_speed(h: float, dt: float, length: float = 4.0, T: float = 20.0) -> float:
-    """Speed of a planar front in a strip [0, length] x [0, h] of 1 x n quadrilaterals,
-    started by u = 1 on x < 0.3: slope of the front position (where u = 0.5, linear
-    interpolation along x) against time over t in [6, T]."""
-    n = round(length / h)
-    domain = mesh.create_rectangle(
-        MPI.COMM_WORLD, [[0, 0], [length, h]], [n, 1], mesh.CellType.quadrilateral
-    )
-    ms = MonodomainMitchellSchaeffer(
-        Coordinator(),
-        domain,
-        u0=lambda x: np.where(x[0] < 0.3, 1.0, 0.0),
-        w0=1.0,
-        dt=dt,
-        tau_close=1e9,
-    )
-    bottom = np.nonzero(np.isclose(ms.V.tabulate_dof_coordinates()[:, 1], 0.0))[0]
-    x = ms.V.tabulate_dof_coordinates()[bottom, 0]
-    order = np.argsort(x)
-    bottom, x = bottom[order], x[order]
-    times, positions = [], []
-    with ms.coordinator:
-        while ms.t < T - 1e-9:
-            ms.advance_time(round(0.5 / dt) * dt)
-            u = ms.u_n().x.array[bottom]
-            i = np.nonzero(u > 0.5)[0].max()
-            times.append(ms.t)
-            positions.append(x[i] + (u[i] - 0.5) / (u[i] - u[i + 1]) * (x[i + 1] - x[i]))
-    times, positions = np.array(times), np.array(positions)
-    fit = times >= 6.0
-    return np.polyfit(times[fit], positions[fit], 1)[0]
+def front_speed(h: float, dt: float, **model) -> float:
+    """:func:`planar_front_speed` with the gate frozen (tau_close = 1e9) unless ``model``
+    says otherwise."""
+    return planar_front_speed(h, dt, **{"tau_close": 1e9, **model})
 
 
 def test_conduction_velocity_converges_to_the_nagumo_speed():
@@ -136,6 +111,38 @@ def test_conduction_velocity_converges_to_the_nagumo_speed():
     errors = [abs(front_speed(h, h / 5) - c) / c for h in (0.04, 0.02, 0.01)]
     assert max(errors) < 3e-3, errors
     assert errors[-1] < 1e-3, errors
+
+
+CONVERGED_CV = 0.1219
+"""Planar conduction velocity of the default parameters (tau_close = 80) on fine grids."""
+
+
+@pytest.mark.parametrize("h", [0.1, 0.05])
+def test_explicit_conduction_velocity(h):
+    """The explicit lumped-mass scheme at dt = 0.03 (the tasks' step) on a strip of cells
+    h x h: the planar front travels within 2 % of the converged speed 0.1219 for h <= 0.1
+    (about 1.6 front widths)."""
+    c = front_speed(h, DT, tau_close=TAU_CLOSE, scheme="explicit")
+    assert abs(c - CONVERGED_CV) < 0.02 * CONVERGED_CV, c
+
+
+def test_explicit_scheme_refuses_an_unstable_dt():
+    """On 100 x 100 cells of the unit square (h = 0.01) the explicit limit is
+    3 h^2 / (8 D) = 2.9e-3 (Gershgorin): dt = 0.03 is refused with one line naming dt, the
+    limit and the mesh; 11 sub-steps of 0.03 / 11 run, and a step of u = 0 stays 0."""
+    domain = mesh.create_unit_square(MPI.COMM_WORLD, 100, 100, mesh.CellType.quadrilateral)
+    with pytest.raises(ValueError, match=r"dt / substeps = 0\.03 .* 0\.002885 .*10000 cells") as e:
+        MonodomainMitchellSchaeffer(Coordinator(), domain, scheme="explicit")
+    assert "\n" not in str(e.value)
+    ms = MonodomainMitchellSchaeffer(Coordinator(), domain, scheme="explicit", substeps=11)
+    assert ms._explicit.dt_max == pytest.approx(3 * 0.01**2 / (8 * D), rel=1e-9)
+    with ms.coordinator:
+        ms.advance_time(DT)
+    assert ms.t == pytest.approx(DT) and not ms.u_n().x.array.any()
+    with pytest.raises(ValueError, match="substeps"):
+        MonodomainMitchellSchaeffer(Coordinator(), domain, substeps=2)
+    with pytest.raises(ValueError, match="scheme"):
+        MonodomainMitchellSchaeffer(Coordinator(), domain, scheme="crank-nicolson")
 
 
 def reentry(n: int = 60, stimulus_time: float = 30.0) -> MonodomainMitchellSchaeffer:
@@ -305,12 +312,41 @@ def test_kernel_and_form_paths_give_the_same_simulation():
         MonodomainMitchellSchaeffer(Coordinator(), domain, rhs="fortran")
 
 
-def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path):
+def test_explicit_c_and_numpy_steps_agree():
+    """The explicit scheme's C pass and its numpy version (``rhs="numpy"``) give the same u, w
+    to 1e-12 after the report's reentry set-up on 20 x 20 cells (30 steps with the stimulus,
+    30 without)."""
+    domain = physicsrl.fem.default_ms_mesh(n=20)
+    models = [
+        MonodomainMitchellSchaeffer(
+            Coordinator(),
+            domain,
+            w0=lambda x: np.where(x[0] < 0, np.minimum(-x[0] / 20, 1), 0.0),
+            I_app=lambda x: np.where((np.abs(x[0]) < 5) & (x[1] > 0), 50.0, 0.0),
+            scheme="explicit",
+            rhs=rhs,
+        )
+        for rhs in ("compiled", "numpy")
+    ]
+    for ms in models:
+        with ms.coordinator:
+            ms.advance_time(30 * DT)
+            ms.set_I_app(0.0)
+            ms.advance_time(30 * DT)
+    c, numpy = models
+    assert c._kernels is not None and numpy._kernels is None
+    assert np.ptp(c.u_n().x.array) > 0.5
+    np.testing.assert_allclose(c.u_n().x.array, numpy.u_n().x.array, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(c.w_n().x.array, numpy.w_n().x.array, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("scheme", ["implicit", "explicit"])
+def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path, scheme):
     """If the C kernels cannot be built, ``rhs="compiled"`` warns once and falls back to the
-    numpy kernel and gate update, with the same right-hand side."""
+    numpy kernel and gate update (implicit) or the numpy explicit step, with the same step."""
     from physicsrl.fem import kernels
 
-    def no_compiler(name, target):
+    def no_compiler(name, target, cdef, source):
         raise OSError("no C compiler")
 
     monkeypatch.setattr(kernels, "_loaded", False)
@@ -319,8 +355,10 @@ def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path):
     monkeypatch.setenv("PHYSICSRL_CACHE_DIR", str(tmp_path))  # no cached module there
     domain = mesh.create_unit_square(MPI.COMM_WORLD, 4, 4, mesh.CellType.quadrilateral)
     with pytest.warns(RuntimeWarning, match="C kernels unavailable"):
-        ms = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=0.2, w0=1.0, I_app=3.0)
-    assert ms.rhs._kernels is None and ms._kernels is None
+        ms = MonodomainMitchellSchaeffer(
+            Coordinator(), domain, u0=0.2, w0=1.0, I_app=3.0, scheme=scheme
+        )
+    assert ms._kernels is None
     with ms.coordinator:
         ms.advance_time(0.03)
     u, w = 0.2, 1.0

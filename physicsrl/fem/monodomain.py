@@ -41,6 +41,11 @@ Scheme (equations 4 and 5): forward Euler for :math:`w`, backward Euler for the 
    quadrature sum as DOLFINx's assembly of the UFL form, ``rhs="form"``, equal to round-off,
    15-25x faster. The gate update of step 1 is a C loop too.
 
+``scheme="explicit"`` replaces steps 1-2 by the explicit lumped-mass scheme of
+:mod:`physicsrl.fem.explicit` (no linear solve; stable for dt below a limit computed from the
+mesh, with ``substeps`` sub-steps per dt); its O(h^2) difference from the scheme above vanishes
+on grids that resolve the front (:mod:`physicsrl.fem.resolution`).
+
 The applied current :math:`I_\mathrm{app}` is piecewise constant on cells (DG0): a callable is
 evaluated at cell midpoints, so a stimulus region whose edges run along mesh nodes stimulates
 the same cells on any number of ranks.
@@ -66,10 +71,15 @@ from petsc4py import PETSc
 from physicsrl.coordinated import Coordinated, Coordinator, parallel
 from physicsrl.fem import kernels as compiled
 from physicsrl.fem.errors import InvalidValue
+from physicsrl.fem.explicit import ExplicitStep
 from physicsrl.fem.kernels import pointer
 from physicsrl.fem.quadrature import CellQuadrature
+from physicsrl.fem.resolution import resolution
 from physicsrl.fem.time_problem import TimeProblem
 from physicsrl.fem.values import assign, finite, positive
+
+SCHEMES = ("implicit", "explicit")
+"""The time schemes of :class:`MonodomainMitchellSchaeffer` (the first is the default)."""
 
 PARALLEL_PETSC_OPTIONS = {"pc_type": "jacobi"}
 """Solver options on more than one rank, updating
@@ -108,15 +118,22 @@ class MonodomainMitchellSchaeffer(Coordinated):
         Time step (> 0).
     quadrature_degree:
         Quadrature degree of the right-hand side (default: 5 x the element degree, exact).
+    scheme:
+        ``"implicit"`` (default, the report's, steps 1-2 above) or ``"explicit"``
+        (:mod:`physicsrl.fem.explicit`): refused with :class:`InvalidValue` if dt / substeps
+        exceeds its stability limit on this mesh.
+    substeps:
+        Explicit sub-steps of dt / substeps per time step (``"explicit"`` only; 1 otherwise).
     rhs:
         How the right-hand side is computed: ``"compiled"`` (default) by
         :class:`MitchellSchaefferRHS` with a C loop (:mod:`physicsrl.fem.kernels`, built once
         and cached; falls back to ``"numpy"`` with a warning if there is no C compiler; the
         gate update is then compiled too), ``"numpy"`` by the same class's vectorised numpy
         kernel, or ``"form"`` by DOLFINx's assembler from the UFL form. All evaluate the same
-        quadrature sum and agree to round-off; the kernels are several (numpy) to ~50 (C)
-        times faster than the assembler (no coefficient packing, no geometry recomputed per
-        step).
+        quadrature sum and agree to round-off (with ``scheme="explicit"``, ``"compiled"``
+        selects the C pass, the others its numpy version); the kernels are several (numpy)
+        to ~50 (C) times faster than the assembler (no coefficient packing, no geometry
+        recomputed per step).
     petsc_options:
         Linear solver options (see :class:`TimeProblem`, and :data:`PARALLEL_PETSC_OPTIONS`
         on more than one rank); ``{"ksp_type": "preonly", "pc_type": "lu"}`` for a direct
@@ -128,7 +145,8 @@ class MonodomainMitchellSchaeffer(Coordinated):
     ----------
     timings:
         Seconds spent in the gate updates (``"ionic"``), right-hand sides (``"rhs"``) and
-        linear solves (``"solve"``), accumulated over all steps.
+        linear solves (``"solve"``), accumulated over all steps; with ``scheme="explicit"``
+        in the fused passes (``"explicit"``) and ghost updates (``"ghosts"``) instead.
     """
 
     def __init__(
@@ -148,11 +166,22 @@ class MonodomainMitchellSchaeffer(Coordinated):
         D: float = 0.013,
         dt: float = 0.03,
         quadrature_degree: int | None = None,
+        scheme: str = "implicit",
+        substeps: int = 1,
         rhs: str = "compiled",
         petsc_options: dict | None = None,
         namespace=None,
     ):
         self.register_coordinator(coordinator, namespace)
+        if scheme not in SCHEMES:
+            raise InvalidValue(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+        if not isinstance(substeps, int) or substeps < 1 or (scheme != "explicit" and substeps > 1):
+            raise InvalidValue(
+                f"substeps must be an integer >= 1 (1 unless scheme='explicit'), got {substeps!r}"
+            )
+        if rhs not in ("compiled", "numpy", "form"):
+            raise InvalidValue(f"rhs must be 'compiled', 'numpy' or 'form', got {rhs!r}")
+        self.scheme, self.substeps = scheme, substeps
         parameters = {
             "tau_in": tau_in,
             "tau_out": tau_out,
@@ -200,15 +229,34 @@ class MonodomainMitchellSchaeffer(Coordinated):
         )
         dx_exact = ufl.dx(domain=domain, metadata={"quadrature_degree": degree})
         self.problem.set_dt(dt)
+        self.tau_in, self.tau_out, self.D = tau_in_c, tau_out_c, D_c  # fem.Constant
+        self.resolution = resolution(domain, D, tau_in, scheme)
+        self._kernels = compiled.load(domain.comm) if rhs == "compiled" else None
+        self._explicit = None
+        if scheme == "explicit":
+            self._explicit = ExplicitStep(
+                self.problem.u_n,
+                w,
+                D=D,
+                tau_in=tau_in,
+                tau_out=tau_out,
+                tau_open=tau_open,
+                tau_close=tau_close,
+                u_gate=u_gate,
+                dt=dt / substeps,
+                kernels=self._kernels,
+                timings=self.timings,
+            )
+            self._explicit.check_stable(self.resolution.mesh)
+            self._explicit.set_current(self._I_app)
+            return
         self.problem.set_bilinear_form(
             (u * v + k * D_c * ufl.inner(ufl.grad(u), ufl.grad(v))) * ufl.dx
         )
-        self.tau_in, self.tau_out, self.D = tau_in_c, tau_out_c, D_c  # fem.Constant
-        kernels = None
+        kernels = self._kernels
         if rhs == "form":
             self.problem.set_linear_form((u_n + k * (J_in + J_out + self._I_app)) * v * dx_exact)
-        elif rhs in ("compiled", "numpy"):
-            kernels = compiled.load(domain.comm) if rhs == "compiled" else None
+        else:
             self.rhs = MitchellSchaefferRHS(
                 CellQuadrature(V, degree, kernels=kernels),
                 u_n,
@@ -220,9 +268,6 @@ class MonodomainMitchellSchaeffer(Coordinated):
                 kernels,
             )
             self.problem.set_rhs(self.rhs)
-        else:
-            raise InvalidValue(f"rhs must be 'compiled', 'numpy' or 'form', got {rhs!r}")
-        self._kernels = kernels
 
         # The gate's next values are written to a work array before the step (they need u^n)
         # and copied to w after it (the step's right-hand side needs w^n).
@@ -254,6 +299,8 @@ class MonodomainMitchellSchaeffer(Coordinated):
     def set_I_app(self, value) -> None:
         """Set the applied current (piecewise constant on cells); it acts from the next step."""
         assign(self._I_app, value, "I_app")
+        if self._explicit is not None:
+            self._explicit.set_current(self._I_app)
 
     @parallel
     def set_initial_condition(self, u0, w0) -> None:
@@ -269,6 +316,11 @@ class MonodomainMitchellSchaeffer(Coordinated):
         """Advance T time units (a whole number of steps); raises ``SimulationDiverged`` on
         every rank if u stops being finite."""
         steps = self.problem.steps(T)
+        if self._explicit is not None:
+            self._explicit.advance(steps * self.substeps)
+            self.problem.record_steps(steps)
+            self.problem.check_finite()
+            return
         w, next_w = self._w.x.array, self._next_w
         gate = self._gate_function()
         timings, step, clock = self.timings, self.problem.step, time.perf_counter

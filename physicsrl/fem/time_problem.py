@@ -250,6 +250,12 @@ class TimeProblem:
                 f"the linear solver failed at t = {self.t:g} (reason {reason})"
             )
 
+    def record_steps(self, steps: int) -> None:
+        """Count ``steps`` steps of ``dt`` taken by a caller that updated ``u_n`` itself (an
+        explicit scheme, which needs no linear solve)."""
+        self.t += steps * float(self._dt_value)
+        self._started = self._started or steps > 0
+
     def check_finite(self) -> None:
         """Raise :class:`SimulationDiverged` on every rank unless ``u_n`` is finite (collective)."""
         owned = self.u_n.x.array[: self._owned]

@@ -1,7 +1,8 @@
 """Run the simulators on this job's ranks; the leader saves the fields to argv[1] (npz).
 
 Mitchell-Schaeffer: the benchmark set-up of physicsrl.bench.ms on 24 x 24 cells, 60 steps
-(stimulus during the first 30); heat: the default environment with u0 = x + 2y, 0.1 time units.
+(stimulus during the first 30), with the scheme argv[2] (default implicit); heat: the default
+environment with u0 = x + 2y, 0.1 time units.
 Saved: dof coordinates, u and w of the monodomain model (owned dofs of all ranks), the heat
 quadrant integrals at t = 0 and t = 0.1, and the heat u with its coordinates.
 """
@@ -27,7 +28,10 @@ def gather(function):
 
 
 coordinator = Coordinator()
-ms = MonodomainMitchellSchaeffer(coordinator, default_ms_mesh(n=24), w0=w0, I_app=stimulus)
+scheme = sys.argv[2] if len(sys.argv) > 2 else "implicit"
+ms = MonodomainMitchellSchaeffer(
+    coordinator, default_ms_mesh(n=24), w0=w0, I_app=stimulus, scheme=scheme
+)
 heat = HeatEnvironment(coordinator, u0=lambda x: x[0] + 2 * x[1])
 with coordinator:
     if coordinator.is_leader():
