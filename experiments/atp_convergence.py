@@ -66,7 +66,7 @@ def main() -> None:
         print(env.task.simulator.resolution, flush=True)
         args.out.mkdir(parents=True, exist_ok=True)
         commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=args.out
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
         ).stdout.strip()
         with (args.out / f"{args.experiment}_convergence.txt").open("a") as log:
             log.write(f"{shlex.join(['python', *sys.argv])}  # commit {commit or 'unknown'}\n")
