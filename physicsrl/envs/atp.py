@@ -13,6 +13,20 @@ pool of that many draws (generated from ``reset.pool_seed``), which makes snapsh
 training too. Snapshots (:mod:`physicsrl.envs.snapshots`) skip the induction of draws seen
 before.
 
+That induction (``induction: report``) works only on coarse grids: the stimulated strip lies in
+tissue with w < 0.2, which is not excitable, and only the grid's cell averages and numerical
+diffusion carry the excitation into excitable tissue (on a 1000 x 1000 grid it dies out on most
+draws; /work/shared/reference/physics-notes.md). ``induction: cross_field`` induces reentry by
+physics, the S1-S2 cross-field protocol (``cross_field.*``): from rest (u = 0, w = 1), S1 is
+``current`` on the strip y > ``s1_bottom`` for ``stimulus_time``, a planar wave travelling
+down (-y) with a refractory tail ~20 mm long behind its front. At
+``s1_time + delay`` (``delay`` ~ U(``s2_delay``)), S2 is ``current`` on the rectangle
+x < ``edge``, y > ``bottom`` (``edge`` ~ U(``s2_edge``), ``bottom`` ~ U(``s2_bottom``)) for
+``stimulus_time``: it excites the recovered tissue above the tail; the S2 wave cannot enter the
+tail, and its end at (``edge``, the tail's top) curls into a spiral as the tail recovers.
+``rest_time`` later the agent starts. The S1 state at ``s1_time`` is the same for every draw:
+it is simulated once per task and kept in memory.
+
 Step: action 0 waits ``decision_interval``; action 1 shocks: ``shock.current`` on the disk of
 radius ``shock.radius`` around ``shock.centre`` for ``shock.duration``, then no current for the
 rest of the interval. Success when the integral of u over the domain is below
@@ -35,7 +49,7 @@ import numpy as np
 
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.envs.baselines import atp_baselines
-from physicsrl.envs.config import integer, interval, number, positive, vector
+from physicsrl.envs.config import choice, integer, interval, number, positive, vector
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
 from physicsrl.envs.snapshots import SnapshotCache
@@ -104,6 +118,35 @@ class ResetStimulus:
 
 
 @dataclass(frozen=True)
+class CrossField:
+    """The S1-S2 cross-field induction (see the module docstring); the defaults suit the
+    domain [-50, 50]^2: the spiral forms in the upper half, under the shock."""
+
+    s1_bottom: float = 48.0
+    s1_time: float = 280.0
+    s2_delay: tuple[float, float] = (0.0, 60.0)
+    s2_edge: tuple[float, float] = (-15.0, 15.0)
+    s2_bottom: tuple[float, float] = (10.0, 20.0)
+    current: float = 50.0
+    stimulus_time: float = 2.0
+    rest_time: float = 50.0
+
+    def __post_init__(self):
+        number("s1_bottom", self.s1_bottom)
+        number("s1_time", self.s1_time, low=0.0)
+        object.__setattr__(self, "s2_delay", interval("s2_delay", self.s2_delay, low=0.0))
+        for name in ("s2_edge", "s2_bottom"):
+            object.__setattr__(self, name, interval(name, getattr(self, name)))
+        number("current", self.current)
+        number("stimulus_time", self.stimulus_time, low=0.0)
+        number("rest_time", self.rest_time, low=0.0)
+
+
+INDUCTIONS = ("report", "cross_field")
+"""How a reset induces the arrhythmia (the first is the default: the report's)."""
+
+
+@dataclass(frozen=True)
 class Shock:
     """The agent's shock: ``current`` on the disk (``centre``, ``radius``) for ``duration``."""
 
@@ -121,8 +164,8 @@ class Shock:
 
 @dataclass(frozen=True)
 class Snapshots:
-    """Snapshot cache settings: at most ``capacity`` states (0: off), saved to / loaded from
-    ``directory`` (null: memory only)."""
+    """Snapshot cache settings: at most ``capacity`` states in memory (0: none), and a library
+    of all of them in ``directory`` (null: none; see :mod:`physicsrl.envs.snapshots`)."""
 
     capacity: int = 100
     directory: str | None = None
@@ -140,6 +183,8 @@ class ATPConfig:
     mesh: SquareMesh = field(default_factory=lambda: SquareMesh(60, 50.0, "quadrilateral"))
     model: MSModel = field(default_factory=MSModel)
     reset: ResetStimulus = field(default_factory=ResetStimulus)
+    induction: str = INDUCTIONS[0]
+    cross_field: CrossField = field(default_factory=CrossField)
     shock: Shock = field(default_factory=Shock)
     decision_interval: float = 50.0
     success_threshold: float = 100.0
@@ -154,6 +199,7 @@ class ATPConfig:
         integer("max_decisions", self.max_decisions, 1)
         integer("extra_waits", self.extra_waits)
         integer("region_quadrature_degree", self.region_quadrature_degree, 1)
+        choice("induction", self.induction, INDUCTIONS)
         if self.shock.duration > self.decision_interval:
             raise ValueError(
                 f"shock.duration must be <= decision_interval = {self.decision_interval}, "
@@ -193,56 +239,93 @@ class ATPTask(Task):
         self.shock = CellAverage(domain, disk, 3, degree)(
             shock.current, *shock.centre, shock.radius
         ).copy()
-        settings = repr((config.mesh, config.model, config.reset, degree))
+        induction = config.reset if config.induction == "report" else config.cross_field
+        settings = repr((config.mesh, config.model, induction, degree))
         self.snapshots = SnapshotCache(
             config.snapshots.capacity, config.snapshots.directory, settings, coordinator.comm
         )
-        self.snapshots.load(self.simulator.u_n().x.array.size)
         self.pool = self._pool()
+        self._s1_state: tuple[np.ndarray, np.ndarray] | None = None  # cross-field S1 at s1_time
         self.decisions = 0
         self.intervals = 0  # decision intervals simulated since the reset (with extra waits)
 
     # draws ---------------------------------------------------------------------------------
     def _uniform(self, rng: np.random.Generator) -> tuple[float, float, float]:
-        r = self.config.reset
-        return tuple(float(rng.uniform(*bounds)) for bounds in (r.centre_x, r.half_width, r.bottom))
+        if self.config.induction == "report":
+            r = self.config.reset
+            ranges = (r.centre_x, r.half_width, r.bottom)
+        else:
+            f = self.config.cross_field
+            ranges = (f.s2_delay, f.s2_edge, f.s2_bottom)
+        return tuple(float(rng.uniform(*bounds)) for bounds in ranges)
 
     def _pool(self) -> list[tuple[float, float, float]]:
         rng = np.random.default_rng(self.config.reset.pool_seed)
         return [self._uniform(rng) for _ in range(self.config.reset.pool)]
 
     def draw(self, rng: np.random.Generator) -> tuple[float, float, float]:
-        """(c, h, b): the centre, half-width and bottom of the reset stimulus."""
+        """The reset's draws: (c, h, b), the centre, half-width and bottom of the stimulus
+        (``induction: report``), or (delay, edge, bottom) of S2 (``cross_field``)."""
         return self.pool[int(rng.integers(len(self.pool)))] if self.pool else self._uniform(rng)
 
     # episodes --------------------------------------------------------------------------------
-    def _induce(self, c: float, h: float, b: float) -> None:
-        """Simulate the reset's induction from scratch (collective; may raise
-        SimulationDiverged)."""
+    def _induce(self, *draws: float) -> None:
+        """Simulate the reset's induction of ``draws`` (see :meth:`draw`) from scratch, but
+        for the cross-field S1 once computed (collective; may raise SimulationDiverged)."""
+        if self.config.induction == "cross_field":
+            self._cross_field(*draws)
+            return
+        c, h, b = draws
         r, sim = self.config.reset, self.simulator
         sim.set_initial_condition(0.0, half_plane_gate(c, r.w_slope))
         sim.reset()
-        sim.set_I_app(self.stimulus(r.current, c, h, b))
-        self._run(r.stimulus_time)
-        sim.set_I_app(0.0)
-        self._run(r.rest_time)
+        self._stimulate(self.stimulus(r.current, c, h, b), r.stimulus_time, r.rest_time)
 
-    def _restore(self, key: tuple) -> None:
-        u, w = self.snapshots.get(key)
+    def _cross_field(self, delay: float, edge: float, bottom: float) -> None:
+        f, sim = self.config.cross_field, self.simulator
+        far = self.config.mesh.extent
+        if self._s1_state is None:
+            sim.set_initial_condition(0.0, 1.0)
+            sim.reset()
+            strip = self.stimulus(f.current, 0.0, 2 * far, f.s1_bottom)
+            self._stimulate(strip, f.stimulus_time, f.s1_time - f.stimulus_time)
+            self._s1_state = (sim.u_n().x.array.copy(), sim.w_n().x.array.copy())
+        self._set_state(*self._s1_state, f.s1_time)
+        self._run(delay)
+        # x < edge: the rectangle |x - c| < h with its left side beyond the domain.
+        s2 = self.stimulus(f.current, -far, edge + far, bottom)
+        self._stimulate(s2, f.stimulus_time, f.rest_time)
+
+    def _stimulate(self, current, duration: float, rest: float) -> None:
+        """Apply ``current`` for ``duration``, then nothing for ``rest``."""
+        self.simulator.set_I_app(current)
+        self._run(duration)
+        self.simulator.set_I_app(0.0)
+        self._run(rest)
+
+    def _set_state(self, u: np.ndarray, w: np.ndarray, t: float) -> None:
         sim = self.simulator
         sim.set_I_app(0.0)
         sim.u_n().x.array[:] = u
         sim.w_n().x.array[:] = w
-        sim.problem.t = self.config.reset.stimulus_time + self.config.reset.rest_time
+        sim.problem.t = t
+
+    def _start_time(self, draws: tuple) -> float:
+        """The model time at which the agent starts after a reset with ``draws``."""
+        if self.config.induction == "report":
+            r = self.config.reset
+            return r.stimulus_time + r.rest_time
+        f = self.config.cross_field
+        return f.s1_time + draws[0] + f.stimulus_time + f.rest_time
 
     @parallel
-    def reset(self, c: float, h: float, b: float) -> np.ndarray | None:
-        key = (c, h, b)
+    def reset(self, *draws: float) -> np.ndarray | None:
+        key = tuple(draws)
         if key in self.snapshots:
-            self._restore(key)
+            self._set_state(*self.snapshots.get(key), self._start_time(key))
         else:
             try:
-                self._induce(c, h, b)
+                self._induce(*key)
             except SimulationDiverged:
                 return None
             self.snapshots.put(key, self.simulator.u_n().x.array, self.simulator.w_n().x.array)
@@ -257,11 +340,6 @@ class ATPTask(Task):
             if tuple(key) not in self.snapshots and self.reset(*key) is not None:
                 induced += 1
         return induced
-
-    @parallel
-    def save_snapshots(self) -> None:
-        """Write the snapshot cache to its directory (one file per rank)."""
-        self.snapshots.save()
 
     def _run(self, duration: float) -> None:
         """Advance ``duration`` rounded to a whole number of steps (50 / 0.03 is not whole)."""

@@ -1,0 +1,93 @@
+"""Mesh convergence of the ATP task: the baseline policies' outcomes on the same held-out draws
+at increasing resolution.
+
+    python experiments/atp_convergence.py --experiment atp --cells 120 [--seeds 5]
+        [--policies never,single0,single1,single2,single3,every4] [key=value ...]
+
+One grid per call (``env.mesh.cells=CELLS``; the explicit scheme above 250 cells per side,
+where the implicit one costs minutes per decision). Policies: never shock, a single shock at
+decision k (``singleK``), every 4th decision. Seeds are the held-out evaluation seeds
+1000000000, 1000000001, ... Every episode appends one row (cells, scheme, policy, seed, return,
+success, shocks, length = decisions to success or failure) to ``<experiment>_convergence.csv``
+on the leader; rows already there are skipped, so a stopped study resumes. The command and
+commit of each call are appended to ``<experiment>_convergence.txt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+from atp_baselines import episode
+
+from physicsrl import builders
+from physicsrl.cli.train import compose
+from physicsrl.coordinated import Coordinator, abort_on_error
+from physicsrl.dojo import held_out_seeds
+from physicsrl.envs.baselines import Constant, EveryKth, Schedule
+
+EXPLICIT_ABOVE = 250
+FIELDS = ("cells", "scheme", "policy", "seed", "return", "success", "shocks", "length")
+
+
+def policy(name: str):
+    if name == "never":
+        return Constant(0)
+    if name == "every4":
+        return EveryKth(4)
+    if name.startswith("single") and name[6:].isdigit():
+        return Schedule([int(name[6:])])
+    raise ValueError(f"--policies: unknown policy {name!r} (never, singleK, every4)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--experiment", default="atp", help="the preset: atp | atp_resolved")
+    parser.add_argument("--cells", type=int, required=True, help="cells per side")
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--policies", default="never,single0,single1,single2,single3,every4")
+    parser.add_argument("--out", type=Path, default=Path("experiments/results"))
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.extra_waits=0")
+    args = parser.parse_args()
+    policies = {name: policy(name) for name in args.policies.split(",")}
+    scheme = "explicit" if args.cells > EXPLICIT_ABOVE else "implicit"
+    overrides = [f"env.mesh.cells={args.cells}", f"env.model.scheme={scheme}", *args.overrides]
+    cfg = compose("train", [f"+experiment={args.experiment}", *overrides])
+    coordinator = Coordinator()
+    env = builders.make_env(cfg, coordinator)
+    results = args.out / f"{args.experiment}_convergence.csv"
+    with abort_on_error(), coordinator:
+        if not coordinator.is_leader():
+            return
+        print(env.task.simulator.resolution, flush=True)
+        args.out.mkdir(parents=True, exist_ok=True)
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
+        ).stdout.strip()
+        with (args.out / f"{args.experiment}_convergence.txt").open("a") as log:
+            log.write(f"{shlex.join(['python', *sys.argv])}  # commit {commit or 'unknown'}\n")
+        done = set()
+        if results.exists():
+            with results.open() as file:
+                done = {(r["cells"], r["policy"], r["seed"]) for r in csv.DictReader(file)}
+        for seed in held_out_seeds(args.seeds):
+            for name, actions in policies.items():
+                if (str(args.cells), name, str(seed)) in done:
+                    continue
+                row = {"cells": args.cells, "scheme": scheme, "policy": name, "seed": seed}
+                row |= episode(env, actions, seed)
+                new = not results.exists()
+                with results.open("a", newline="") as file:
+                    writer = csv.DictWriter(file, FIELDS)
+                    if new:
+                        writer.writeheader()
+                    writer.writerow(row)
+                print(row, flush=True)
+
+
+if __name__ == "__main__":
+    main()
