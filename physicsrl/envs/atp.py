@@ -97,6 +97,23 @@ class ResetStimulus:
         integer("pool_seed", self.pool_seed)
 
 
+class ResetSampler:
+    """``sampler(rng)`` -> (c, h, b), the draws of a reset: uniform in the ranges of
+    ``reset``, or one of its fixed pool of ``reset.pool`` draws (from ``reset.pool_seed``)."""
+
+    def __init__(self, reset: ResetStimulus):
+        self.reset = reset
+        rng = np.random.default_rng(reset.pool_seed)
+        self.pool = [self._uniform(rng) for _ in range(reset.pool)]
+
+    def _uniform(self, rng: np.random.Generator) -> tuple[float, float, float]:
+        r = self.reset
+        return tuple(float(rng.uniform(*bounds)) for bounds in (r.centre_x, r.half_width, r.bottom))
+
+    def __call__(self, rng: np.random.Generator) -> tuple[float, float, float]:
+        return self.pool[int(rng.integers(len(self.pool)))] if self.pool else self._uniform(rng)
+
+
 @dataclass(frozen=True)
 class Shock:
     """The agent's shock: ``current`` on the disk (``centre``, ``radius``) for ``duration``."""
@@ -184,22 +201,14 @@ class ATPTask(Task):
             config.snapshots.capacity, config.snapshots.directory, settings, coordinator.comm
         )
         self.snapshots.load(self.simulator.u_n().x.array.size)
-        self.pool = self._pool()
+        self.sampler = ResetSampler(config.reset)
+        self.pool = self.sampler.pool
         self.decisions = 0
         self.intervals = 0  # decision intervals simulated since the reset (with extra waits)
 
-    # draws ---------------------------------------------------------------------------------
-    def _uniform(self, rng: np.random.Generator) -> tuple[float, float, float]:
-        r = self.config.reset
-        return tuple(float(rng.uniform(*bounds)) for bounds in (r.centre_x, r.half_width, r.bottom))
-
-    def _pool(self) -> list[tuple[float, float, float]]:
-        rng = np.random.default_rng(self.config.reset.pool_seed)
-        return [self._uniform(rng) for _ in range(self.config.reset.pool)]
-
     def draw(self, rng: np.random.Generator) -> tuple[float, float, float]:
         """(c, h, b): the centre, half-width and bottom of the reset stimulus."""
-        return self.pool[int(rng.integers(len(self.pool)))] if self.pool else self._uniform(rng)
+        return self.sampler(rng)
 
     # episodes --------------------------------------------------------------------------------
     def _induce(self, c: float, h: float, b: float) -> None:

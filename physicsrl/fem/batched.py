@@ -227,11 +227,12 @@ class BatchedMonodomain:
         """The number of steps of dt in T (rounded: 50 / 0.03 is not whole)."""
         return round(T / self.dt)
 
-    def advance(self, u: torch.Tensor, w: torch.Tensor, current, steps: int) -> None:
+    def advance(self, u: torch.Tensor, w: torch.Tensor, current, steps: int) -> torch.Tensor:
         """Run ``steps`` steps of dt on ``u``, ``w`` (B, n), in place, with the current
-        ``current`` ((B, c) cell values or None). Raises :class:`SimulationDiverged` if u stops
-        being finite. Inside, the replicas are columns ((n, B): sparse products and gathers
-        then move contiguous rows of B values)."""
+        ``current`` ((B, c) cell values or None); return whether each replica's u is still
+        finite, (B,) bool (a replica that is not does not stop the others). Inside, the
+        replicas are columns ((n, B): sparse products and gathers then move contiguous rows of
+        B values)."""
         with self._threads():
             U, W = u.T.contiguous(), w.T.contiguous()
             forcing = None if current is None else self._current @ current.T.to(self.dtype)
@@ -243,8 +244,7 @@ class BatchedMonodomain:
                     self._implicit_step(U, W, forcing)
             u.copy_(U.T)
             w.copy_(W.T)
-        if not bool(torch.isfinite(u).all()):
-            raise SimulationDiverged("the batched solution is not finite")
+            return torch.isfinite(u).all(dim=1)
 
     @contextmanager
     def _threads(self):
@@ -302,7 +302,8 @@ class BatchedMonodomain:
     def solve(self, b: torch.Tensor, x: torch.Tensor) -> None:
         """(M + dt D K) x = b for the columns of b (n, B) by Jacobi-preconditioned CG, from
         and into x, until every column's preconditioned residual is below rtol x its right-hand
-        side's."""
+        side's. A column stops changing once it has converged, so that each replica's result
+        does not depend on the others in the batch."""
         A, d = self._A, self._inverse_diagonal
         r = b - A @ x
         z = r * d
@@ -311,12 +312,14 @@ class BatchedMonodomain:
         rz = (r * z).sum(dim=0)
         zero = torch.zeros_like(rz)
         for _ in range(CG_MAX_ITERATIONS):
-            if bool((torch.linalg.vector_norm(z, dim=0) <= limit).all()):
+            norm = torch.linalg.vector_norm(z, dim=0)
+            active = (norm > limit) & torch.isfinite(norm)  # non-finite: diverged, left as is
+            if not bool(active.any()):
                 return
             self.iterations += 1
             Ap = A @ p
             pAp = (p * Ap).sum(dim=0)
-            alpha = torch.where(pAp > 0, rz / pAp, zero)
+            alpha = torch.where(active & (pAp > 0), rz / pAp, zero)
             x.addcmul_(alpha, p)
             r.addcmul_(alpha, Ap, value=-1.0)
             torch.mul(r, d, out=z)
