@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 import physicsrl.fem  # noqa: F401  (first: loads the MPI library that dolfinx links to)
 
 # isort: split
@@ -13,12 +15,14 @@ from dolfinx import mesh
 from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinator
+from physicsrl.envs.atp import MSModel
 from physicsrl.envs.regions import half_plane_gate
 from physicsrl.envs.task import SquareMesh
 from physicsrl.fem import InvalidValue, MonodomainMitchellSchaeffer
 from physicsrl.fem.batched import BatchedMonodomain
 
-DT = 0.03
+MODEL = asdict(MSModel())  # the report's parameters (scheme implicit)
+DT = MODEL["dt"]
 
 
 def induction(c):
@@ -39,7 +43,7 @@ def test_replicas_equal_the_dolfinx_path(scheme):
     of the PETSc path's own 1 vs 2 rank tests, 1e-6 (u is O(1); measured: 1.1e-7); explicit:
     the compiled C pass, to round-off (1e-12)."""
     domain = SquareMesh(24, 50.0, "quadrilateral").create(MPI.COMM_SELF)
-    batched = BatchedMonodomain(domain, scheme=scheme, device="cpu")
+    batched = BatchedMonodomain(domain, **{**MODEL, "scheme": scheme}, device="cpu")
     centres = (-8.0, 0.0, 6.5)
     expected_u, expected_w, currents = [], [], []
     for c in centres:
@@ -75,7 +79,7 @@ def planar_wave(dtype, samples=1200, every=10, cells=150, length=15.0):
         [cells, 1],
         mesh.CellType.quadrilateral,
     )
-    sim = BatchedMonodomain(domain, scheme="explicit", device="cpu", dtype=dtype)
+    sim = BatchedMonodomain(domain, **{**MODEL, "scheme": "explicit"}, device="cpu", dtype=dtype)
     x = sim.V.tabulate_dof_coordinates()[:, 0]
     probes = [int(np.flatnonzero(np.isclose(x, p))[0]) for p in (5.0, 10.0)]
     u = sim.nodal(lambda x: (x[0] < 1.0).astype(float))[None].clone()
@@ -115,8 +119,10 @@ def test_float32_conduction_velocity_and_apd_match_float64():
 def test_explicit_refuses_an_unstable_step():
     domain = SquareMesh(60, 50.0, "quadrilateral").create(MPI.COMM_SELF)
     with pytest.raises(InvalidValue, match="dt / substeps = 100 exceeds"):
-        BatchedMonodomain(domain, scheme="explicit", dt=100.0, device="cpu")
-    BatchedMonodomain(domain, scheme="explicit", dt=100.0, substeps=2, device="cpu")
+        BatchedMonodomain(domain, **{**MODEL, "scheme": "explicit", "dt": 100.0}, device="cpu")
+    BatchedMonodomain(
+        domain, **{**MODEL, "scheme": "explicit", "dt": 100.0, "substeps": 2}, device="cpu"
+    )
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
@@ -127,7 +133,7 @@ def test_cuda_float32_follows_cpu_float64():
     _, w0, stimulus = induction(0.0)
     results = []
     for device in ("cpu", "cuda"):
-        sim = BatchedMonodomain(domain, device=device)
+        sim = BatchedMonodomain(domain, **MODEL, device=device)
         u = torch.zeros(2, sim.num_dofs, device=device, dtype=sim.dtype)
         w = torch.stack([sim.nodal(w0)] * 2)
         ms = MonodomainMitchellSchaeffer(Coordinator(MPI.COMM_SELF), domain, I_app=stimulus)

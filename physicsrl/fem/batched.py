@@ -100,7 +100,8 @@ class BatchedMonodomain:
     domain:
         A DOLFINx mesh on ``MPI.COMM_SELF``.
     tau_in, tau_out, tau_open, tau_close, u_gate, D, dt:
-        As :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`.
+        As :class:`~physicsrl.fem.MonodomainMitchellSchaeffer` (the report's values:
+        ``dataclasses.asdict(physicsrl.envs.atp.MSModel())``).
     scheme, substeps:
         ``"implicit"`` or ``"explicit"`` with ``substeps`` sub-steps per dt (explicit only).
     device, dtype:
@@ -127,14 +128,14 @@ class BatchedMonodomain:
         self,
         domain: mesh.Mesh,
         *,
-        tau_in: float = 0.3,
-        tau_out: float = 6.0,
-        tau_open: float = 75.0,
-        tau_close: float = 80.0,
-        u_gate: float = 0.13,
-        D: float = 0.013,
-        dt: float = 0.03,
-        scheme: str = "implicit",
+        tau_in: float,
+        tau_out: float,
+        tau_open: float,
+        tau_close: float,
+        u_gate: float,
+        D: float,
+        dt: float,
+        scheme: str = SCHEMES[0],
         substeps: int = 1,
         device: str | torch.device | None = None,
         dtype: torch.dtype | None = None,
