@@ -42,8 +42,7 @@ is O(1) and every step adds O(dt) increments, so float32's relative rounding of 
 accumulates far below the schemes' own O(h^2 + dt) errors: the conduction velocity and action
 potential duration of a planar wave (explicit, h = 0.1) differ from float64 by 2e-6 and 7e-5
 relative (0.11991 mm/ms, 140.4 ms; ``tests/test_fem_batched.py`` asserts < 0.5%). The CG
-tolerance is raised to the dtype's reach (``rtol`` is
-floored at 100 x its machine epsilon).
+tolerance is raised to the dtype's reach (``rtol`` is floored at 100 x its machine epsilon).
 """
 
 from __future__ import annotations
