@@ -51,6 +51,7 @@ import warnings
 from contextlib import contextmanager
 
 import numpy as np
+import scipy.sparse
 import torch
 import ufl
 from dolfinx import fem, mesh
@@ -150,9 +151,8 @@ class BatchedMonodomain:
             raise InvalidValue(
                 f"substeps must be an integer >= 1 (1 unless scheme='explicit'), got {substeps!r}"
             )
-        for name, value in (("tau_in", tau_in), ("tau_out", tau_out), ("tau_open", tau_open)):
-            positive(name, value)
-        for name, value in (("tau_close", tau_close), ("D", D), ("dt", dt)):
+        rates = {"tau_in": tau_in, "tau_out": tau_out, "tau_open": tau_open}
+        for name, value in {**rates, "tau_close": tau_close, "D": D, "dt": dt}.items():
             positive(name, value)
         self.u_gate = finite("u_gate", u_gate)
         self.device = torch.device(default_device() if device is None else device)
@@ -183,22 +183,19 @@ class BatchedMonodomain:
                     f"{self.dt_max:.4g} on {self.num_cells} cells: raise substeps or use "
                     "scheme='implicit'"
                 )
-            import scipy.sparse
-
             inverse = scipy.sparse.diags(1.0 / m)
             self._C = _sparse(
                 scipy.sparse.identity(len(m)) - h * D * inverse @ stiffness, self.device, self.dtype
             )
             self._current = _sparse(h * inverse @ current, self.device, self.dtype)
             return
-        self._A = _sparse(mass + self.dt * D * stiffness, self.device, self.dtype)
-        self._inverse_diagonal = self.tensor(1.0 / (mass + self.dt * D * stiffness).diagonal())[
-            :, None
-        ]
+        A = mass + self.dt * D * stiffness
+        self._A = _sparse(A, self.device, self.dtype)
+        self._inverse_diagonal = self.tensor(1.0 / A.diagonal())[:, None]
         self._M = _sparse(mass, self.device, self.dtype)
         self._current = _sparse(self.dt * current, self.device, self.dtype)
         self.rtol = max(float(rtol), 100 * torch.finfo(self.dtype).eps)
-        quadrature = CellQuadrature(V, 5)
+        quadrature = CellQuadrature(V, 5)  # exact: w u^3 phi has degree 5 (per direction)
         self._dofs_t = torch.tensor(quadrature.dofs.T, dtype=torch.int64, device=self.device)
         self._phi = torch.as_tensor(quadrature.phi, device=self.device).to(self.dtype)  # (q, d)
         self._phi_t = self._phi.T.contiguous()
