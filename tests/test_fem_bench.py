@@ -12,11 +12,19 @@ from physicsrl.bench import ms
 
 
 def test_ms_benchmark_core_on_a_tiny_grid():
-    """8 x 8 cells, 40 steps (stimulus in the first 30): one row per implementation with
-    positive step times, and the baseline's final u equals physicsrl's within 1e-8."""
-    rows = ms.run(OmegaConf.create({"grid": {"n": 8}, "steps": 40, "baseline": True}))
-    assert [row["implementation"] for row in rows] == ["physicsrl", "report (baseline)"]
+    """20 x 20 cells (the stimulus covers the cells of midpoints x = +-2.5), 40 steps
+    (stimulus in the first 30): one row per implementation with positive step times; the
+    baseline's final u equals physicsrl's implicit one within 1e-8, the floor's equals the
+    explicit one to round-off (the structured stencil is the assembled operator), and the
+    explicit differs from the implicit (another scheme)."""
+    cfg = {"grid": {"n": 20}, "steps": 40, "baseline": True, "scheme": "both"}
+    rows = ms.run(OmegaConf.create(cfg))
+    names = ["physicsrl", "physicsrl explicit", "floor (structured C loop)", "report (baseline)"]
+    assert [row["implementation"] for row in rows] == names
     for row in rows:
-        assert row["dofs"] == 81 and row["step_ms"] > 0 and row["solve_ms"] > 0
-    assert rows[1]["max_abs_diff_u"] < 1e-8
+        assert row["dofs"] == 441 and row["step_ms"] > 0
+    assert rows[0]["solve_ms"] > 0 and rows[1]["explicit_ms"] > 0
+    assert rows[3]["max_abs_diff_u"] < 1e-8
+    assert rows[2]["max_abs_diff_u"] < 1e-13
+    assert rows[1]["max_abs_diff_u"] > 1e-3
     assert ms.goals(rows)

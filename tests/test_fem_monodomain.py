@@ -14,6 +14,7 @@ from scipy.integrate import solve_ivp
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.fem import MonodomainMitchellSchaeffer, SimulationDiverged, plot_field
+from physicsrl.fem.resolution import planar_front_speed
 
 TAU_IN, TAU_OUT, TAU_OPEN, TAU_CLOSE, U_GATE, D, DT = 0.3, 6.0, 75.0, 80.0, 0.13, 0.013, 0.03
 
@@ -94,38 +95,10 @@ def nagumo_speed() -> float:
     return np.sqrt(D * k / 2) * (b - 2 * a)
 
 
-def front_speed(h: float, dt: float, length: float = 4.0, T: float = 20.0, **model) -> float:
-    """Speed of a planar front in a strip [0, length] x [0, h] of 1 x n quadrilaterals,
-    started by u = 1 on x < 0.3: slope of the front position (where u = 0.5, linear
-    interpolation along x) against time over t in [6, T]. ``model``: keyword arguments of the
-    model (default: the gate frozen, tau_close = 1e9)."""
-    n = round(length / h)
-    domain = mesh.create_rectangle(
-        MPI.COMM_WORLD, [[0, 0], [length, h]], [n, 1], mesh.CellType.quadrilateral
-    )
-    ms = MonodomainMitchellSchaeffer(
-        Coordinator(),
-        domain,
-        u0=lambda x: np.where(x[0] < 0.3, 1.0, 0.0),
-        w0=1.0,
-        dt=dt,
-        **{"tau_close": 1e9, **model},
-    )
-    bottom = np.nonzero(np.isclose(ms.V.tabulate_dof_coordinates()[:, 1], 0.0))[0]
-    x = ms.V.tabulate_dof_coordinates()[bottom, 0]
-    order = np.argsort(x)
-    bottom, x = bottom[order], x[order]
-    times, positions = [], []
-    with ms.coordinator:
-        while ms.t < T - 1e-9:
-            ms.advance_time(round(0.5 / dt) * dt)
-            u = ms.u_n().x.array[bottom]
-            i = np.nonzero(u > 0.5)[0].max()
-            times.append(ms.t)
-            positions.append(x[i] + (u[i] - 0.5) / (u[i] - u[i + 1]) * (x[i + 1] - x[i]))
-    times, positions = np.array(times), np.array(positions)
-    fit = times >= 6.0
-    return np.polyfit(times[fit], positions[fit], 1)[0]
+def front_speed(h: float, dt: float, **model) -> float:
+    """:func:`planar_front_speed` with the gate frozen (tau_close = 1e9) unless ``model``
+    says otherwise."""
+    return planar_front_speed(h, dt, **{"tau_close": 1e9, **model})
 
 
 def test_conduction_velocity_converges_to_the_nagumo_speed():
@@ -339,12 +312,41 @@ def test_kernel_and_form_paths_give_the_same_simulation():
         MonodomainMitchellSchaeffer(Coordinator(), domain, rhs="fortran")
 
 
-def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path):
+def test_explicit_c_and_numpy_steps_agree():
+    """The explicit scheme's C pass and its numpy version (``rhs="numpy"``) give the same u, w
+    to 1e-12 after the report's reentry set-up on 20 x 20 cells (30 steps with the stimulus,
+    30 without)."""
+    domain = physicsrl.fem.default_ms_mesh(n=20)
+    models = [
+        MonodomainMitchellSchaeffer(
+            Coordinator(),
+            domain,
+            w0=lambda x: np.where(x[0] < 0, np.minimum(-x[0] / 20, 1), 0.0),
+            I_app=lambda x: np.where((np.abs(x[0]) < 5) & (x[1] > 0), 50.0, 0.0),
+            scheme="explicit",
+            rhs=rhs,
+        )
+        for rhs in ("compiled", "numpy")
+    ]
+    for ms in models:
+        with ms.coordinator:
+            ms.advance_time(30 * DT)
+            ms.set_I_app(0.0)
+            ms.advance_time(30 * DT)
+    c, numpy = models
+    assert c._kernels is not None and numpy._kernels is None
+    assert np.ptp(c.u_n().x.array) > 0.5
+    np.testing.assert_allclose(c.u_n().x.array, numpy.u_n().x.array, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(c.w_n().x.array, numpy.w_n().x.array, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("scheme", ["implicit", "explicit"])
+def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path, scheme):
     """If the C kernels cannot be built, ``rhs="compiled"`` warns once and falls back to the
-    numpy kernel and gate update, with the same right-hand side."""
+    numpy kernel and gate update (implicit) or the numpy explicit step, with the same step."""
     from physicsrl.fem import kernels
 
-    def no_compiler(name, target):
+    def no_compiler(name, target, cdef, source):
         raise OSError("no C compiler")
 
     monkeypatch.setattr(kernels, "_loaded", False)
@@ -353,8 +355,10 @@ def test_without_a_c_compiler_the_numpy_kernel_is_used(monkeypatch, tmp_path):
     monkeypatch.setenv("PHYSICSRL_CACHE_DIR", str(tmp_path))  # no cached module there
     domain = mesh.create_unit_square(MPI.COMM_WORLD, 4, 4, mesh.CellType.quadrilateral)
     with pytest.warns(RuntimeWarning, match="C kernels unavailable"):
-        ms = MonodomainMitchellSchaeffer(Coordinator(), domain, u0=0.2, w0=1.0, I_app=3.0)
-    assert ms.rhs._kernels is None and ms._kernels is None
+        ms = MonodomainMitchellSchaeffer(
+            Coordinator(), domain, u0=0.2, w0=1.0, I_app=3.0, scheme=scheme
+        )
+    assert ms._kernels is None
     with ms.coordinator:
         ms.advance_time(0.03)
     u, w = 0.2, 1.0

@@ -8,17 +8,20 @@ the region's edges, which run along mesh nodes, select the same cells on any ran
 coordination column holds the per-call costs: the parallel call, the step-count check and the
 finiteness check of u, not only per-step overhead). physicsrl computes the right-hand side
 with its compiled C kernel; ``+rhs=numpy`` selects the numpy kernel and ``+rhs=form``
-DOLFINx's assembly of the UFL form. Run for
-physicsrl and, unless ``baseline=false``, for the port of the report's code
-(:mod:`physicsrl.baselines.report_fem`) in the same job.
+DOLFINx's assembly of the UFL form. Run in the same job for physicsrl's schemes
+(``scheme=implicit``, ``explicit`` or ``both``), on one rank with the explicit scheme for its
+floor (:mod:`physicsrl.bench.ms_floor`: a fused structured-grid C loop on the same state,
+whose final u is compared), and, unless ``baseline=false``, for the port of the report's code
+(:mod:`physicsrl.baselines.report_fem`).
 
 Per implementation: setup time (mesh excluded, forms, matrix, initial conditions), the first
 step, the mean of the other steps split into linear solve, right-hand side, ionic (gate)
-update and coordination (the rest of the leader's wall time: the parallel call, timers), the
+update (implicit), fused pass and ghost update (explicit) and coordination (the rest of the
+leader's wall time: the parallel call, timers), the wall time of all steps (``run_s``), the
 peak resident memory of each rank so far (``ru_maxrss``: cumulative, so the second
 implementation's figure includes the first one's peak), and the largest difference of the
-final u from physicsrl's. Switching the current off after step 30 is not timed. The first step
-includes the matrix's factorisation (ICC for physicsrl, LU for the baseline).
+final u from physicsrl's (the first row's). Switching the current off after step 30 is not
+timed. The first step includes the matrix's factorisation (ICC for physicsrl, LU for the baseline).
 """
 
 from __future__ import annotations
@@ -31,11 +34,15 @@ from mpi4py import MPI
 
 from physicsrl.baselines.report_coordinated import ReportCoordinator
 from physicsrl.baselines.report_fem import ReportMonodomainMitchellSchaeffer
+from physicsrl.bench.ms_floor import StructuredFloor
 from physicsrl.coordinated import Coordinator
 from physicsrl.fem import MonodomainMitchellSchaeffer, default_ms_mesh
+from physicsrl.fem.monodomain import SCHEMES
 
 DT = 0.03
+EXTENT = 50.0
 STIMULUS_STEPS = 30
+PHASES = ("solve", "rhs", "ionic", "explicit", "ghosts")
 
 
 def w0(x):
@@ -64,10 +71,17 @@ def _time_steps(coordinator, model, steps: int) -> dict:
                 walls.append(time.perf_counter() - start)
                 if step == 0:
                     after_first = dict(model.timings)
+    return _summary(walls, model.timings, after_first, steps)
+
+
+def _summary(walls: list[float], timings: dict, after_first: dict, steps: int) -> dict:
+    """The first step's and the other steps' mean wall time and phases, in ms, from the
+    leader."""
     others = max(steps - 1, 1)
-    phases = {k: (v - after_first.get(k, 0.0)) / others * 1e3 for k, v in model.timings.items()}
+    phases = {k: (v - after_first.get(k, 0.0)) / others * 1e3 for k, v in timings.items()}
     step = float(np.mean(walls[1:])) * 1e3 if len(walls) > 1 else float("nan")
     result = {"first_step_ms": walls[0] * 1e3 if walls else 0.0, "step_ms": step}
+    result["run_s"] = float(np.sum(walls))
     result.update({f"{k}_ms": v for k, v in phases.items()})
     result["coordination_ms"] = step - sum(phases.values())
     return MPI.COMM_WORLD.bcast(result, root=0)
@@ -90,25 +104,75 @@ def _measure(name: str, build, steps: int) -> tuple[dict, object]:
         "setup_s": round(setup, 3),
         "first_step_ms": round(times["first_step_ms"], 3),
         "step_ms": round(times["step_ms"], 4),
+        "run_s": round(times["run_s"], 3),
     }
-    for phase in ("solve", "rhs", "ionic", "coordination"):
-        row[f"{phase}_ms"] = round(times[f"{phase}_ms"], 4)
+    for phase in (*PHASES, "coordination"):
+        row[f"{phase}_ms"] = round(times.get(f"{phase}_ms", 0.0), 4)
     peaks = comm.allgather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     row["peak_rss_mib"] = "/".join(f"{p:.0f}" for p in peaks)
     return row, model
 
 
+def _floor(model, n: int, steps: int) -> dict:
+    """The floor's row (one rank): the same initial state, current and steps as ``model``
+    (built but not yet run), in grid order; its final u is compared with the model's."""
+    start = time.perf_counter()
+    h = 2 * EXTENT / n
+    parameters = {k: float(getattr(model, k).value) for k in ("D", "tau_in", "tau_out")}
+    floor = StructuredFloor(
+        n,
+        h,
+        **parameters,
+        tau_open=model.tau_open,
+        tau_close=model.tau_close,
+        u_gate=model.u_gate,
+        dt=DT,
+    )
+    xy = model.V.tabulate_dof_coordinates()[:, :2]
+    grid = np.rint((xy + EXTENT) / h).astype(np.int64)
+    order = grid[:, 1] * (n + 1) + grid[:, 0]  # dof -> grid index
+    floor.u[order], floor.w[order] = model.u_n().x.array, model.w_n().x.array
+    current = np.zeros_like(floor.u)
+    current[order] = model._explicit.current
+    floor.current = current
+    setup = time.perf_counter() - start
+    walls = []
+    for step in range(steps):
+        if step == STIMULUS_STEPS:
+            floor.current = None
+        begin = time.perf_counter()
+        floor.advance(1)
+        walls.append(time.perf_counter() - begin)
+    times = _summary(walls, {}, {}, steps)
+    return {
+        "implementation": "floor (structured C loop)",
+        "ranks": 1,
+        "dofs": floor.u.size,
+        "steps": steps,
+        "setup_s": round(setup, 3),
+        "first_step_ms": round(times["first_step_ms"], 3),
+        "step_ms": round(times["step_ms"], 4),
+        "run_s": round(times["run_s"], 3),
+        "u": floor.u[order],
+    }
+
+
 def run(cfg) -> list[dict]:
-    """The rows (physicsrl, then the baseline) of one benchmark run; the same on every rank."""
+    """The rows (physicsrl's schemes, the floor, the baseline) of one benchmark run; the same
+    on every rank."""
     n, steps, baseline = int(cfg.grid.n), int(cfg.steps), bool(cfg.baseline)
     rhs = str(cfg.get("rhs", "compiled"))  # "+rhs=numpy" / "+rhs=form": the other paths
+    scheme = str(cfg.get("scheme", "implicit"))
+    schemes = SCHEMES if scheme == "both" else (scheme,)
+    if not set(schemes) <= set(SCHEMES):
+        raise ValueError(f"scheme must be implicit, explicit or both, got {scheme!r}")
     comm = MPI.COMM_WORLD
-    domain = default_ms_mesh(comm, n)
+    domain = default_ms_mesh(comm, n, EXTENT)
 
-    def ours():
+    def ours(scheme):
         coordinator = Coordinator(comm)
         return coordinator, MonodomainMitchellSchaeffer(
-            coordinator, domain, u0=0.0, w0=w0, I_app=stimulus, dt=DT, rhs=rhs
+            coordinator, domain, u0=0.0, w0=w0, I_app=stimulus, dt=DT, rhs=rhs, scheme=scheme
         )
 
     def theirs():
@@ -117,37 +181,58 @@ def run(cfg) -> list[dict]:
             coordinator, domain, no_current, w0, stimulus, dt=DT
         )
 
-    row, model = _measure(
-        "physicsrl" if rhs == "compiled" else f"physicsrl (rhs={rhs})", ours, steps
-    )
-    row["grid"] = f"{n}x{n}"
-    rows = [row]
+    builds = {
+        ("physicsrl" if rhs == "compiled" else f"physicsrl (rhs={rhs})")
+        + ("" if s == "implicit" else f" {s}"): (lambda s=s: ours(s))
+        for s in schemes
+    }
     if baseline:
-        row, other = _measure("report (baseline)", theirs, steps)
-        row["grid"] = f"{n}x{n}"
-        owned = model.u_n().function_space.dofmap.index_map.size_local
-        difference = np.abs(other.u_n().x.array[:owned] - model.u_n().x.array[:owned]).max(
-            initial=0
-        )
-        row["max_abs_diff_u"] = float(comm.allreduce(difference, op=MPI.MAX))
+        builds["report (baseline)"] = theirs
+    rows, models = [], []
+    for name, build in builds.items():
+        if name.endswith("explicit") and comm.size == 1:
+            floor = _floor(build()[1], n, steps)
+        row, model = _measure(name, build, steps)
         rows.append(row)
-        for r in rows:
-            r["speedup"] = round(rows[1]["step_ms"] / r["step_ms"], 2)
+        models.append(model)
+        if name.endswith("explicit") and comm.size == 1:
+            owned = model.u_n().x.array
+            floor["max_abs_diff_u"] = float(np.abs(floor.pop("u") - owned).max())
+            rows.append(floor)
+            models.append(None)
+    owned = models[0].u_n().function_space.dofmap.index_map.size_local
+    reference = models[0].u_n().x.array[:owned]
+    for row, model in zip(rows, models, strict=True):
+        row["grid"] = f"{n}x{n}"
+        if model is not None and model is not models[0]:
+            difference = np.abs(model.u_n().x.array[:owned] - reference).max(initial=0)
+            row["max_abs_diff_u"] = float(comm.allreduce(difference, op=MPI.MAX))
+        row["speedup"] = round(rows[0]["step_ms"] / row["step_ms"], 2)
     return rows
 
 
 def goals(rows: list[dict]) -> list[tuple[str, bool]]:
-    """The issue's goals, each with whether this run met it."""
-    ours = rows[0]
+    """The issues' goals that this run measures, each with whether it was met."""
+    by_name = {row["implementation"]: row for row in rows}
+    first, grid, ranks = rows[0], rows[0]["grid"], rows[0]["ranks"]
     result = []
-    if ours["grid"] == "60x60" and ours["ranks"] == 1:
-        result.append((f"60x60, 1 rank: {ours['step_ms']} ms/step <= 0.3", ours["step_ms"] <= 0.3))
-    if len(rows) > 1:
-        speedup = ours["speedup"]
+    implicit, explicit = by_name.get("physicsrl"), by_name.get("physicsrl explicit")
+    floor, report = by_name.get("floor (structured C loop)"), by_name.get("report (baseline)")
+    if implicit and grid == "60x60" and ranks == 1:
+        step = implicit["step_ms"]
+        result.append((f"60x60, 1 rank: implicit {step} ms/step <= 0.3", step <= 0.3))
+    if implicit and report:
+        ratio = round(report["step_ms"] / implicit["step_ms"], 2)
+        result.append((f"{grid}, {ranks} ranks: {ratio}x the baseline >= 10x", ratio >= 10))
+    if implicit and explicit and grid == "1000x1000" and ranks == 1:
+        ratio = round(implicit["step_ms"] / explicit["step_ms"], 1)
         result.append(
-            (
-                f"{ours['grid']}, {ours['ranks']} ranks: {speedup}x the baseline >= 10x",
-                speedup >= 10,
-            )
+            (f"{grid}, 1 rank: explicit {ratio}x faster than implicit >= 25x", ratio >= 25)
         )
+    if explicit and floor and grid == "1000x1000":
+        ratio = round(explicit["step_ms"] / floor["step_ms"], 2)
+        result.append((f"{grid}, 1 rank: explicit {ratio}x the floor <= 2.5x", ratio <= 2.5))
+    if explicit and grid == "3000x3000" and ranks == 2 and first["steps"] == 100:
+        run = explicit["run_s"]
+        result.append((f"{grid}, 2 ranks, 100 steps: explicit {run} s <= 15 s", run <= 15))
     return result

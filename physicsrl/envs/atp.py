@@ -42,6 +42,7 @@ from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
 from physicsrl.fem import MonodomainMitchellSchaeffer, SimulationDiverged
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 from physicsrl.fem.monodomain import SCHEMES
+from physicsrl.fem.resolution import report
 
 WAIT, SHOCK = 0, 1
 
@@ -49,8 +50,9 @@ WAIT, SHOCK = 0, 1
 @dataclass(frozen=True)
 class MSModel:
     """Mitchell-Schaeffer parameters (report section 4.3): time constants, gate threshold,
-    diffusivity (mm^2/ms), time step, and the time scheme with its sub-steps (see
-    :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`)."""
+    diffusivity (mm^2/ms), time step, the time scheme with its sub-steps (see
+    :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`), and whether to warn when the mesh
+    does not resolve the front (:func:`physicsrl.fem.resolution.report`)."""
 
     dt: float = 0.03
     tau_in: float = 0.3
@@ -61,6 +63,7 @@ class MSModel:
     D: float = 0.013
     scheme: str = "implicit"
     substeps: int = 1
+    warn_resolution: bool = True
 
     def __post_init__(self):
         for name in ("dt", "tau_in", "tau_out", "tau_open", "tau_close", "D"):
@@ -69,6 +72,8 @@ class MSModel:
         if self.scheme not in SCHEMES:
             raise ValueError(f"scheme must be one of {SCHEMES}, got {self.scheme!r}")
         integer("substeps", self.substeps, 1)
+        if not isinstance(self.warn_resolution, bool):
+            raise ValueError(f"warn_resolution must be true or false, got {self.warn_resolution!r}")
 
 
 @dataclass(frozen=True)
@@ -185,7 +190,10 @@ class ATPTask(Task):
         self.config, self.observation = config, observation
         self.max_steps = config.max_decisions
         domain = config.mesh.create(coordinator.comm)
-        self.simulator = MonodomainMitchellSchaeffer(coordinator, domain, **asdict(config.model))
+        model = asdict(config.model)
+        warn = model.pop("warn_resolution")
+        self.simulator = MonodomainMitchellSchaeffer(coordinator, domain, **model)
+        report(self.simulator.resolution, coordinator.comm, warn)
         self.register_coordinator(coordinator)
         V = self.simulator.V
         # Row 0: the integral of u over the domain (success test); then the observation's rows.

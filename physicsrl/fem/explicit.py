@@ -3,8 +3,9 @@ r"""The explicit lumped-mass scheme of the monodomain Mitchell-Schaeffer model.
 Lumped mass :math:`m_i = \sum_j M_{ij} = \int_\Omega \phi_i\,dx` (the row sums of the
 assembled mass matrix, since :math:`\sum_j \phi_j = 1`), stiffness
 :math:`K_{ij} = \int_\Omega \nabla\phi_j \cdot \nabla\phi_i\,dx` (assembled once, this rank's
-owned rows in CSR with local column indices, ghosts included), nodal reaction and nodal
-current. One step of :math:`\Delta t` (a sub-step :math:`\Delta t / k` with ``substeps=k``):
+owned rows with local column indices, ghosts included, padded to one row length), nodal
+reaction and nodal current. One step of :math:`\Delta t` (a sub-step :math:`\Delta t / k`
+with ``substeps=k``):
 
 .. math::
 
@@ -16,9 +17,10 @@ current. One step of :math:`\Delta t` (a sub-step :math:`\Delta t / k` with ``su
 and forward Euler for :math:`w_i` as in the implicit scheme. :math:`I_i` is the
 lumped-mass-weighted average of the (cell-wise constant) current over the cells around node
 :math:`i`. The row operator :math:`C = I - \Delta t D M_L^{-1} K` is stored, so that one C
-pass (``ms_explicit`` of :mod:`physicsrl.fem.kernels`) computes the owned :math:`u^{n+1}` into
-a second array and the gate in place; then one ghost update (``scatter_forward``). The two
-arrays of u alternate between steps (no copy but at the end of an odd run).
+pass (``ms_explicit`` of :mod:`physicsrl.fem.kernels`) computes the owned :math:`u^{n+1}` and
+the gate in place (a new value waits in a ring of ``lag + 1`` values until no later row reads
+the old one: DOLFINx's dof order keeps the lag near the grid's side); then one ghost update
+(``scatter_forward``).
 
 Stability of the diffusion part: forward Euler needs :math:`\Delta t \le 2 / (D \lambda_\max)`,
 :math:`\lambda_\max` the largest eigenvalue of :math:`M_L^{-1} K` (real and non-negative: it is
@@ -72,7 +74,7 @@ class ExplicitStep:
 
     ``dt`` is the sub-step; :meth:`check_stable` raises :class:`InvalidValue` (one line) if it
     exceeds :attr:`dt_max`. :meth:`set_current` takes the DG0 current; :meth:`advance` runs
-    steps. ``kernels`` is the compiled module (``None``: numpy and scipy). ``timings`` gets the
+    steps. ``kernels`` is the compiled module (``None``: numpy). ``timings`` gets the
     seconds of the fused passes (``"explicit"``) and of the ghost updates (``"ghosts"``).
     """
 
@@ -92,7 +94,19 @@ class ExplicitStep:
         )
         values *= -self.dt * D / self.mass[rows]
         values[indices == rows] += 1.0
-        self.indptr, self.indices, self.values = indptr, indices, values
+        # Rows padded to one width (ELLPACK) with zeros at the diagonal's column.
+        lengths = np.diff(indptr)
+        self.width = int(lengths.max(initial=1))
+        slots = np.arange(indptr[-1]) - np.repeat(indptr[:-1], lengths)
+        self.columns = np.repeat(np.arange(self.owned, dtype=np.int32), self.width).reshape(
+            self.owned, self.width
+        )
+        self.values = np.zeros((self.owned, self.width))
+        self.columns[rows, slots] = indices
+        self.values[rows, slots] = values
+        behind = rows - indices
+        self.lag = int(behind[indices < self.owned].max(initial=0))
+        self.ring = np.empty(self.lag + 1)
         self.constants = (
             self.dt,
             tau_in,
@@ -105,7 +119,7 @@ class ExplicitStep:
         self._current_form = None
         self.current = np.zeros(self.owned)  # dt I_i
         self.has_current = False
-        self.other = fem.Function(V)  # the second array of u
+        self._args = None  # the kernel's arguments
         for name in ("explicit", "ghosts"):
             timings.setdefault(name, 0.0)
 
@@ -131,46 +145,39 @@ class ExplicitStep:
         self.has_current = bool(self.current.any())
 
     def advance(self, steps: int) -> None:
-        """Run ``steps`` steps; u and w end in ``self.u`` and ``self.w``."""
-        source, target = self.u, self.other
-        clock, timings = time.perf_counter, self.timings
+        """Run ``steps`` steps of u and w in place."""
+        clock, timings, step, u = time.perf_counter, self.timings, self._step, self.u
         for _ in range(steps):
             start = clock()
-            self._step(source.x.array, target.x.array)
+            step()
             middle = clock()
-            target.x.scatter_forward()
+            u.x.scatter_forward()
             timings["explicit"] += middle - start
             timings["ghosts"] += clock() - middle
-            source, target = target, source
-        if source is not self.u:
-            self.u.x.array[:] = source.x.array
 
-    def _step(self, u: np.ndarray, u_next: np.ndarray) -> None:
-        w, current = self.w.x.array, self.current if self.has_current else None
-        if self.kernels is not None:
-            ffi = self.kernels.ffi
-            self.kernels.lib.ms_explicit(
-                self.owned,
-                w.size,
-                pointer(ffi, self.indptr, "int64_t *"),
-                pointer(ffi, self.indices, "int32_t *"),
-                pointer(ffi, self.values),
-                pointer(ffi, u),
-                pointer(ffi, w),
-                ffi.NULL if current is None else pointer(ffi, current),
-                *self.constants,
-                pointer(ffi, u_next),
-            )
+    def _step(self) -> None:
+        current = self.current if self.has_current else None
+        if self.kernels is None:
+            self._numpy_step(self.u.x.array, self.w.x.array, current)
             return
-        self._numpy_step(u, w, current, u_next)
+        if self._args is None:  # pointers made once: the arrays stay in place
+            ffi, u, w = self.kernels.ffi, self.u.x.array, self.w.x.array
+            self._args = (
+                (self.owned, w.size, self.width, pointer(ffi, self.columns, "int32_t *")),
+                (pointer(ffi, self.values), pointer(ffi, u), pointer(ffi, w)),
+                (ffi.NULL, pointer(ffi, self.current)),
+                (*self.constants, self.lag, pointer(ffi, self.ring)),
+            )
+        head, arrays, currents, tail = self._args
+        self.kernels.lib.ms_explicit(*head, *arrays, currents[current is not None], *tail)
 
-    def _numpy_step(self, u, w, current, u_next) -> None:
+    def _numpy_step(self, u, w, current) -> None:
         dt, tau_in, tau_out, u_gate, a_open, b_open, a_close = self.constants
         n = self.owned
-        rows = np.repeat(np.arange(n), np.diff(self.indptr))
-        diffusion = np.bincount(rows, self.values * u[self.indices], minlength=n)
+        diffusion = np.einsum("ij,ij->i", self.values, u[self.columns])
         own = u[:n]
-        u_next[:n] = diffusion + own * (dt / tau_in * w[:n] * own * (1.0 - own) - dt / tau_out)
+        diffusion += own * (dt / tau_in * w[:n] * own * (1.0 - own) - dt / tau_out)
         if current is not None:
-            u_next[:n] += current
+            diffusion += current
         w[:] = np.where(u < u_gate, w * a_open + b_open, w * a_close)
+        u[:n] = diffusion

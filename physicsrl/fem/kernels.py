@@ -17,9 +17,11 @@ Four loops that numpy can only express as many passes over large temporaries:
     The forward-Euler gate update :math:`w^{n+1}_i = a_\mathrm{open} w_i + b_\mathrm{open}` if
     :math:`u_i < u_\mathrm{gate}`, else :math:`a_\mathrm{close} w_i`, into a separate array.
 ``ms_explicit``
-    One step of the explicit scheme (:mod:`physicsrl.fem.explicit`): a CSR row product, the
-    nodal reaction and current into a separate array for the owned rows, and the gate update
-    of every local entry in place.
+    One step of the explicit scheme (:mod:`physicsrl.fem.explicit`): a row product with the
+    operator's owned rows padded to one width (ELLPACK, so that the row loop has a constant
+    length and unrolls), the nodal reaction and current, for the owned rows, in place (a new
+    value is held back in a small ring until no later row reads the old one), and the gate
+    update of every local entry in place.
 ``cell_det``
     :math:`|\det J|` at the quadrature points of every cell from the coordinate element's
     derivative table (gdim = tdim = 1, 2, 3), as per-cell values plus the largest relative
@@ -63,10 +65,10 @@ void ms_gate(int64_t n, const double *u, const double *w, double *out, double u_
              double a_open, double b_open, double a_close);
 double cell_det(int64_t num_cells, int gdim, int nq, int nx, const int32_t *x_dofs,
                 const double *x, const double *dphi, double *det, int per_point);
-void ms_explicit(int64_t owned, int64_t local, const int64_t *indptr, const int32_t *indices,
-                 const double *values, const double *u, double *w, const double *current,
+void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns,
+                 const double *values, double *u, double *w, const double *current,
                  double dt, double tau_in, double tau_out, double u_gate, double a_open,
-                 double b_open, double a_close, double *u_next);
+                 double b_open, double a_close, int64_t lag, double *ring);
 """
 
 _SOURCE = r"""
@@ -165,31 +167,59 @@ void ms_gate(int64_t n, const double *u, const double *w, double *out, double u_
         out[i] = u[i] < u_gate ? w[i] * a_open + b_open : w[i] * a_close;
 }
 
-/* One explicit step (physicsrl.fem.explicit): for the owned rows i,
-   u_next[i] = sum_k values[k] u[indices[k]] (k in the row's CSR range: I - dt D M_L^-1 K)
-               + dt (w u^2 (1 - u) / tau_in - u / tau_out) + current[i] (dt I_i; NULL: none),
-   then the gate of every local entry (owned and ghost) in place, from u and the old w. */
-void ms_explicit(int64_t owned, int64_t local, const int64_t *indptr, const int32_t *indices,
-                 const double *values, const double *u, double *w, const double *current,
-                 double dt, double tau_in, double tau_out, double u_gate, double a_open,
-                 double b_open, double a_close, double *u_next)
+/* One explicit step (physicsrl.fem.explicit), in place: for the owned rows i,
+   u[i] <- sum_k C[i][k] u[columns[i][k]] (k < width: the row of C = I - dt D M_L^-1 K,
+           padded with zeros)
+           + dt (w u^2 (1 - u) / tau_in - u / tau_out) + current[i] (dt I_i; NULL: none),
+   all from the old u; and the gate of every local entry (owned and ghost) in place, from u
+   and the old w. Row i reads no column below i - lag (lag >= 0), so its new value waits in a
+   ring of lag + 1 values and is written when row i + lag + 1 starts.
+   Inlined with constant widths for the common elements, so that the row loop unrolls. */
+static inline __attribute__((always_inline)) void
+explicit_rows(int64_t owned, int64_t local, const int width, const int32_t *columns,
+              const double *values, double *u, double *w, const double *current,
+              double k_in, double k_out, double u_gate, double a_open, double b_open,
+              double a_close, int64_t lag, double *ring)
 {
-    const double k_in = dt / tau_in, k_out = dt / tau_out;
+    const int64_t r = lag + 1;
+    for (int64_t i = 0, slot = 0; i < owned; ++i, slot = slot + 1 == r ? 0 : slot + 1) {
+        if (i >= r)
+            u[i - r] = ring[slot];
+        const int32_t *col = columns + i * width;
+        const double *val = values + i * width;
+        double s = 0.0;
+        for (int k = 0; k < width; ++k)
+            s += val[k] * u[col[k]];
+        const double ui = u[i], wi = w[i];
+        s += ui * (k_in * wi * ui * (1.0 - ui) - k_out);
+        ring[slot] = current ? s + current[i] : s;
+        w[i] = ui < u_gate ? wi * a_open + b_open : wi * a_close;
+    }
+    for (int64_t i = owned > r ? owned - r : 0; i < owned; ++i)
+        u[i] = ring[i % r];
+    for (int64_t i = owned; i < local; ++i)
+        w[i] = u[i] < u_gate ? w[i] * a_open + b_open : w[i] * a_close;
+}
+
+void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns,
+                 const double *values, double *u, double *w, const double *current,
+                 double dt, double tau_in, double tau_out, double u_gate, double a_open,
+                 double b_open, double a_close, int64_t lag, double *ring)
+{
 #if defined(__SSE__)
     const unsigned int csr = _mm_getcsr(); /* subnormals to zero, as in ms_rhs */
     _mm_setcsr(csr | 0x8040);
 #endif
-    for (int64_t i = 0; i < owned; ++i) {
-        double s = 0.0;
-        for (int64_t k = indptr[i]; k < indptr[i + 1]; ++k)
-            s += values[k] * u[indices[k]];
-        const double ui = u[i], wi = w[i];
-        s += ui * (k_in * wi * ui * (1.0 - ui) - k_out);
-        u_next[i] = current ? s + current[i] : s;
-        w[i] = ui < u_gate ? wi * a_open + b_open : wi * a_close;
-    }
-    for (int64_t i = owned; i < local; ++i)
-        w[i] = u[i] < u_gate ? w[i] * a_open + b_open : w[i] * a_close;
+#define ROWS(WIDTH) explicit_rows(owned, local, WIDTH, columns, values, u, w, current, \
+                                  dt / tau_in, dt / tau_out, u_gate, a_open, b_open, a_close, \
+                                  lag, ring)
+    if (width == 9)
+        ROWS(9); /* Q1 quadrilaterals */
+    else if (width == 27)
+        ROWS(27); /* Q1 hexahedra */
+    else
+        ROWS(width);
+#undef ROWS
 #if defined(__SSE__)
     _mm_setcsr(csr);
 #endif
@@ -253,9 +283,9 @@ def cache_dir() -> Path:
     return Path(os.environ.get("PHYSICSRL_CACHE_DIR", Path.home() / ".cache" / "physicsrl"))
 
 
-def _module_name() -> str:
-    key = "\0".join([_CDEF, _SOURCE, " ".join(_FLAGS), sys.version, sys.platform, _cpu()])
-    return "_physicsrl_kernels_" + hashlib.sha256(key.encode()).hexdigest()[:16]
+def _module_name(prefix: str, cdef: str, source: str) -> str:
+    key = "\0".join([cdef, source, " ".join(_FLAGS), sys.version, sys.platform, _cpu()])
+    return prefix + hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
 def _cpu() -> str:
@@ -268,13 +298,13 @@ def _cpu() -> str:
         return platform.machine()
 
 
-def _build(name: str, target: Path) -> None:
+def _build(name: str, target: Path, cdef: str, source: str) -> None:
     """Compile the module in a private directory and rename it to ``target`` (atomic)."""
     import cffi
 
     ffi = cffi.FFI()
-    ffi.cdef(_CDEF)
-    ffi.set_source(name, _SOURCE, extra_compile_args=_FLAGS)
+    ffi.cdef(cdef)
+    ffi.set_source(name, source, extra_compile_args=_FLAGS)
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent) as build:
         built = ffi.compile(tmpdir=build)
@@ -288,33 +318,40 @@ def _import(name: str, path: Path):
     return module
 
 
-def load(comm=None):
-    """The compiled module (attributes ``ffi`` and ``lib``), or ``None`` with a warning if it
-    cannot be built. Collective over ``comm`` (an ``MPI.Comm``, or ``None`` for this process
-    alone) on the first call; later calls return the loaded module at once."""
-    global _module, _loaded
-    if _loaded:
-        return _module
-    name = _module_name()
+def build(prefix: str, cdef: str, source: str, comm=None):
+    """The cffi module (attributes ``ffi`` and ``lib``) of C ``source`` declaring ``cdef``,
+    built or loaded from the cache as described in the module docstring and named ``prefix``
+    plus a hash; raises if it cannot be built. Collective over ``comm`` (``None``: this
+    process alone)."""
+    name = _module_name(prefix, cdef, source)
     target = cache_dir() / (name + importlib.machinery.EXTENSION_SUFFIXES[0])
     error = None
     try:
         if comm is not None and comm.rank == 0 and not target.exists():
-            _build(name, target)
-    except Exception as exc:  # no compiler, no headers, unwritable cache: use numpy
+            _build(name, target, cdef, source)
+    except Exception as exc:  # reported by every rank below, after the barrier
         error = exc
     if comm is not None and comm.size > 1:
         comm.Barrier()
-    try:
-        if error is None and not target.exists():
-            _build(name, target)
-        if error is None:
-            _module = _import(name, target)
-    except Exception as exc:
-        error = exc
     if error is not None:
+        raise error
+    if not target.exists():
+        _build(name, target, cdef, source)
+    return _import(name, target)
+
+
+def load(comm=None):
+    """This module's kernels (attributes ``ffi`` and ``lib``), or ``None`` with a warning if
+    they cannot be built. Collective over ``comm`` (an ``MPI.Comm``, or ``None`` for this
+    process alone) on the first call; later calls return the loaded module at once."""
+    global _module, _loaded
+    if _loaded:
+        return _module
+    try:
+        _module = build("_physicsrl_kernels_", _CDEF, _SOURCE, comm)
+    except Exception as exc:  # no compiler, no headers, unwritable cache: use numpy
         warnings.warn(
-            f"physicsrl: C kernels unavailable ({type(error).__name__}: {error}); "
+            f"physicsrl: C kernels unavailable ({type(exc).__name__}: {exc}); "
             "using the numpy versions",
             RuntimeWarning,
             stacklevel=2,

@@ -130,9 +130,10 @@ class MonodomainMitchellSchaeffer(Coordinated):
         and cached; falls back to ``"numpy"`` with a warning if there is no C compiler; the
         gate update is then compiled too), ``"numpy"`` by the same class's vectorised numpy
         kernel, or ``"form"`` by DOLFINx's assembler from the UFL form. All evaluate the same
-        quadrature sum and agree to round-off; the kernels are several (numpy) to ~50 (C)
-        times faster than the assembler (no coefficient packing, no geometry recomputed per
-        step).
+        quadrature sum and agree to round-off (with ``scheme="explicit"``, ``"compiled"``
+        selects the C pass, the others its numpy version); the kernels are several (numpy)
+        to ~50 (C) times faster than the assembler (no coefficient packing, no geometry
+        recomputed per step).
     petsc_options:
         Linear solver options (see :class:`TimeProblem`, and :data:`PARALLEL_PETSC_OPTIONS`
         on more than one rank); ``{"ksp_type": "preonly", "pc_type": "lu"}`` for a direct

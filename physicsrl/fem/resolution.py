@@ -6,18 +6,24 @@ conduction velocity (CV) a scheme computes depends on h against that width;
 ``benchmarks/ms_cv.py`` measures its relative error against the converged CV for both schemes
 at dt = 0.03 and writes the table :data:`TABLE` (``cv_error.csv`` beside this module, the one
 place the numbers live). :func:`resolution` interpolates it, linearly in
-:math:`\log(h / \text{width})`, clamped to the table's ends.
+:math:`\log(h / \text{width})`, clamped to the table's ends; :func:`report` prints it and
+warns when the error is above :data:`MAX_CV_ERROR`.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from dolfinx import mesh
 from mpi4py import MPI
+
+MAX_CV_ERROR = 0.05
+"""Expected relative planar CV error above which :func:`report` warns."""
 
 TABLE = Path(__file__).with_name("cv_error.csv")
 """Columns ``scheme``, ``h_over_width``, ``cv_error`` (relative, signed: -1 when no wave
@@ -87,3 +93,84 @@ def resolution(domain, D: float, tau_in: float, scheme: str) -> Resolution:
     width = math.sqrt(D * tau_in)
     cells = domain.topology.index_map(domain.topology.dim).size_global
     return Resolution(scheme, cells, h, width, expected_cv_error(scheme, h / width))
+
+
+class ResolutionWarning(UserWarning):
+    """The mesh does not resolve the front: the expected CV error is above
+    :data:`MAX_CV_ERROR`."""
+
+
+_warned = False
+
+
+def report(resolution: Resolution, comm: MPI.Comm, warn: bool = True) -> None:
+    """Print ``resolution`` on rank 0 of ``comm``, and once per process a
+    :class:`ResolutionWarning` (one line) if its expected CV error exceeds
+    :data:`MAX_CV_ERROR` in magnitude, unless ``warn`` is false."""
+    global _warned
+    if comm.rank != 0:
+        return
+    print(resolution, flush=True)
+    if warn and not _warned and abs(resolution.cv_error) > MAX_CV_ERROR:
+        _warned = True
+        warnings.warn(
+            f"the mesh does not resolve the front (h/width = {resolution.ratio:.3g}, expected "
+            f"planar CV error {resolution.cv_error:+.0%}, above {MAX_CV_ERROR:.0%}): the "
+            "dynamics are numerical; refine the mesh, or set env.model.warn_resolution=false",
+            ResolutionWarning,
+            stacklevel=2,
+        )
+
+
+def planar_front_speed(
+    h: float,
+    dt: float,
+    length: float = 4.0,
+    T: float = 20.0,
+    t_fit: float | None = 6.0,
+    **model,
+) -> float:
+    """Speed of a planar front of :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`
+    (``model``: its keyword arguments) in a strip [0, length] x [0, h] of 1 x n square
+    quadrilaterals on this process, started by u = 1 on x < max(0.3, 3 h): the slope of the
+    front position (where u = 0.5, linear interpolation along x) against time over
+    [t_fit, T] (``t_fit=None``: the later two thirds of the samples), sampled every 0.5 time
+    units until the front passes 80 % of the strip; 0 if the front dies (no wave propagates)."""
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.fem.monodomain import MonodomainMitchellSchaeffer
+
+    n = round(length / h)
+    domain = mesh.create_rectangle(
+        MPI.COMM_SELF, [[0, 0], [length, h]], [n, 1], mesh.CellType.quadrilateral
+    )
+    start = max(0.3, 3 * h)
+    ms = MonodomainMitchellSchaeffer(
+        Coordinator(MPI.COMM_SELF),
+        domain,
+        u0=lambda x: np.where(x[0] < start, 1.0, 0.0),
+        w0=1.0,
+        dt=dt,
+        **model,
+    )
+    xy = ms.V.tabulate_dof_coordinates()
+    bottom = np.nonzero(np.isclose(xy[:, 1], 0.0))[0]
+    bottom = bottom[np.argsort(xy[bottom, 0])]
+    x = xy[bottom, 0]
+    times, positions = [], []
+    with ms.coordinator:
+        while ms.t < T - 1e-9:
+            ms.advance_time(round(0.5 / dt) * dt)
+            u = ms.u_n().x.array[bottom]
+            excited = np.nonzero(u > 0.5)[0]
+            if excited.size == 0:
+                return 0.0
+            i = excited.max()
+            if x[i] > 0.8 * length:
+                break
+            times.append(ms.t)
+            positions.append(x[i] + (u[i] - 0.5) / (u[i] - u[i + 1]) * (x[i + 1] - x[i]))
+    times, positions = np.array(times), np.array(positions)
+    if t_fit is None:
+        t_fit = times[0] + (times[-1] - times[0]) / 3
+    fit = times >= t_fit
+    return float(np.polyfit(times[fit], positions[fit], 1)[0])

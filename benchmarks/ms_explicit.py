@@ -1,0 +1,124 @@
+"""The explicit Mitchell-Schaeffer scheme against the implicit one, its floor and its ranks.
+
+Runs, one after the other (issue 11's benchmark):
+
+- ``physicsrl-bench ms scheme=both`` at 60, 1000 and 2000 cells per side on 1 and 2 ranks
+  (``--steps``, default 20) and at 3000 x 3000 on 2 ranks for 100 steps (the report's run):
+  ms per step of both schemes with their phases, and on one rank the floor (a fused
+  structured-grid C loop, :mod:`physicsrl.bench.ms_floor`), all in the same job;
+- the 2000 x 2000 explicit steps per second on 2 ranks against 1 rank;
+- one decision (50 time units, a wait and a shock) of the ATP task at 1000 x 1000 with the
+  explicit scheme on one rank (this process), after a reset.
+
+Writes benchmarks/results/ms_explicit.csv (the rows) and ms_explicit.txt (the command, a
+table, the goals met/MISSED).
+
+    python benchmarks/ms_explicit.py [--steps 20] [--skip-3000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from bench_run import bench_record, save_results  # noqa: E402
+
+DECISION_GRID = 1000
+
+
+def decision_seconds(n: int) -> tuple[float, float, float]:
+    """(reset, wait, shock) seconds of the ATP task on n x n cells, explicit, this process."""
+    import numpy as np
+
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.envs import load_config, make_env
+    from physicsrl.envs.atp import SHOCK, WAIT
+
+    overrides = [f"env.mesh.cells={n}", "env.model.scheme=explicit", "env.snapshots.capacity=0"]
+    env = make_env(load_config("ms", "catheter", "atp", overrides), Coordinator())
+    task, clock = env.task, time.perf_counter
+    with task.coordinator:
+        start = clock()
+        task.reset(*task.draw(np.random.default_rng(0)))
+        reset = clock() - start
+        start = clock()
+        task.step(WAIT)
+        wait = clock() - start
+        start = clock()
+        task.step(SHOCK)
+        return reset, wait, clock() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--skip-3000", action="store_true")
+    args = parser.parse_args()
+    runs = [(n, ranks, args.steps) for n in (60, 1000, 2000) for ranks in (1, 2)]
+    if not args.skip_3000:
+        runs.append((3000, 2, 100))
+    rows, goals = [], []
+    for n, ranks, steps in runs:
+        record = bench_record(
+            "ms",
+            f"grid.n={n}",
+            f"steps={steps}",
+            "scheme=both",
+            "baseline=false",
+            f"mpi.ranks={ranks}",
+        )
+        rows += record["rows"]
+        goals += [f"{'met' if g['met'] else 'MISSED'}: {g['goal']}" for g in record["goals"]]
+        for row in record["rows"]:
+            print(
+                f"{n}x{n}, {ranks} ranks, {row['implementation']}: {row['step_ms']} ms/step",
+                flush=True,
+            )
+    explicit = {
+        (r["grid"], r["ranks"]): r["step_ms"]
+        for r in rows
+        if r["implementation"] == "physicsrl explicit"
+    }
+    scaling = explicit[("2000x2000", 1)] / explicit[("2000x2000", 2)]
+    goals.append(
+        f"{'met' if scaling >= 1.7 else 'MISSED'}: 2000x2000 explicit: 2 ranks "
+        f"{scaling:.2f}x the steps/s of 1 rank >= 1.7x"
+    )
+    reset, wait, shock = decision_seconds(DECISION_GRID)
+    decision = max(wait, shock)
+    goals.append(
+        f"{'met' if decision <= 10 else 'MISSED'}: ATP decision at {DECISION_GRID}x"
+        f"{DECISION_GRID}, explicit, 1 rank: wait {wait:.1f} s, shock {shock:.1f} s <= 10 s"
+        f" (reset {reset:.1f} s)"
+    )
+    table = [
+        "| grid | ranks | implementation | setup s | ms/step | phases (ms/step) | run s |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        phases = ", ".join(
+            f"{p} {r[f'{p}_ms']}"
+            for p in ("solve", "rhs", "ionic", "explicit", "ghosts", "coordination")
+            if r.get(f"{p}_ms")
+        )
+        table.append(
+            f"| {r['grid']} | {r['ranks']} | {r['implementation']} | {r['setup_s']} | "
+            f"{r['step_ms']} | {phases} | {r['run_s']} |"
+        )
+    figure, axes = plt.subplots(figsize=(6, 4))
+    labels = {"physicsrl": "implicit", "physicsrl explicit": "explicit"}
+    for name in ("physicsrl", "physicsrl explicit", "floor (structured C loop)"):
+        ours = [r for r in rows if r["implementation"] == name and r["ranks"] == 1]
+        dofs, times = [r["dofs"] for r in ours], [r["step_ms"] for r in ours]
+        axes.plot(dofs, times, "o-", label=labels.get(name, name))
+    axes.set(xscale="log", yscale="log", xlabel="dofs", ylabel="ms per step (1 rank)")
+    axes.legend()
+    save_results("ms_explicit", rows, figure, [*table, "", *goals])
+
+
+if __name__ == "__main__":
+    main()
