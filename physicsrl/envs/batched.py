@@ -40,6 +40,7 @@ from physicsrl.envs.rewards import REWARDS, Reward
 from physicsrl.envs.snapshots import SnapshotCache
 from physicsrl.fem.batched import BatchedMonodomain
 from physicsrl.fem.integrals import form_rows
+from physicsrl.fem.resolution import report
 
 BACKENDS = ("petsc", "torch")
 """``env.model.backend``: the coordinated DOLFINx/PETSc simulator, or this module's."""
@@ -80,7 +81,10 @@ class BatchedATPEnv(EnvBase):
         self.config, self.observation, self.reward_fn = config, observation, reward
         self.max_reset_attempts = max_reset_attempts
         domain = config.mesh.create(MPI.COMM_SELF)
-        self.simulator = sim = BatchedMonodomain(domain, **asdict(config.model), device=device)
+        model = asdict(config.model)
+        warn = model.pop("warn_resolution")
+        self.simulator = sim = BatchedMonodomain(domain, **model, device=device)
+        report(sim.resolution, MPI.COMM_WORLD, warn)  # rank 0 of the job prints it
         V = sim.V
         rows = np.vstack([form_rows(V, [1.0]), observation.rows(V)])  # row 0: integral of u
         self.rows = sim.tensor(rows)

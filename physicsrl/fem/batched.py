@@ -60,6 +60,7 @@ from physicsrl.fem.errors import InvalidValue, SimulationDiverged
 from physicsrl.fem.explicit import lumped_mass
 from physicsrl.fem.monodomain import SCHEMES
 from physicsrl.fem.quadrature import CellQuadrature
+from physicsrl.fem.resolution import resolution
 from physicsrl.fem.values import finite, positive
 
 CG_RTOL = 1e-10
@@ -123,6 +124,8 @@ class BatchedMonodomain:
         n and c of the state (B, n) and the current (B, c).
     iterations:
         CG iterations of all implicit steps so far.
+    resolution:
+        How well the mesh resolves the front (:func:`physicsrl.fem.resolution.resolution`).
     """
 
     def __init__(
@@ -160,6 +163,7 @@ class BatchedMonodomain:
         self.scheme, self.substeps, self.dt = scheme, substeps, float(dt)
         self.iterations = 0
         self.threads = int(threads)
+        self.resolution = resolution(domain, D, tau_in, scheme)
         V = self.V = fem.functionspace(domain, ("Lagrange", 1))
         Q = fem.functionspace(domain, ("DG", 0))
         self.num_dofs = V.dofmap.index_map.size_local
