@@ -117,6 +117,28 @@ class ResetStimulus:
         integer("pool_seed", self.pool_seed)
 
 
+class ResetSampler:
+    """``sampler(rng)`` -> the draws of a reset (:meth:`ATPTask.draw`): uniform in the ranges
+    of the config's induction, or one of a fixed pool of ``reset.pool`` such draws (generated
+    from ``reset.pool_seed``)."""
+
+    def __init__(self, config: ATPConfig):
+        if config.induction == "report":
+            r = config.reset
+            self.ranges = (r.centre_x, r.half_width, r.bottom)
+        else:
+            f = config.cross_field
+            self.ranges = (f.s2_delay, f.s2_edge, f.s2_bottom)
+        rng = np.random.default_rng(config.reset.pool_seed)
+        self.pool = [self._uniform(rng) for _ in range(config.reset.pool)]
+
+    def _uniform(self, rng: np.random.Generator) -> tuple[float, ...]:
+        return tuple(float(rng.uniform(*bounds)) for bounds in self.ranges)
+
+    def __call__(self, rng: np.random.Generator) -> tuple[float, ...]:
+        return self.pool[int(rng.integers(len(self.pool)))] if self.pool else self._uniform(rng)
+
+
 @dataclass(frozen=True)
 class CrossField:
     """The S1-S2 cross-field induction (see the module docstring); the defaults suit the
@@ -244,29 +266,15 @@ class ATPTask(Task):
         self.snapshots = SnapshotCache(
             config.snapshots.capacity, config.snapshots.directory, settings, coordinator.comm
         )
-        self.pool = self._pool()
+        self.sampler = ResetSampler(config)
         self._s1_state: tuple[np.ndarray, np.ndarray] | None = None  # cross-field S1 at s1_time
         self.decisions = 0
         self.intervals = 0  # decision intervals simulated since the reset (with extra waits)
 
-    # draws ---------------------------------------------------------------------------------
-    def _uniform(self, rng: np.random.Generator) -> tuple[float, float, float]:
-        if self.config.induction == "report":
-            r = self.config.reset
-            ranges = (r.centre_x, r.half_width, r.bottom)
-        else:
-            f = self.config.cross_field
-            ranges = (f.s2_delay, f.s2_edge, f.s2_bottom)
-        return tuple(float(rng.uniform(*bounds)) for bounds in ranges)
-
-    def _pool(self) -> list[tuple[float, float, float]]:
-        rng = np.random.default_rng(self.config.reset.pool_seed)
-        return [self._uniform(rng) for _ in range(self.config.reset.pool)]
-
     def draw(self, rng: np.random.Generator) -> tuple[float, float, float]:
         """The reset's draws: (c, h, b), the centre, half-width and bottom of the stimulus
         (``induction: report``), or (delay, edge, bottom) of S2 (``cross_field``)."""
-        return self.pool[int(rng.integers(len(self.pool)))] if self.pool else self._uniform(rng)
+        return self.sampler(rng)
 
     # episodes --------------------------------------------------------------------------------
     def _induce(self, *draws: float) -> None:

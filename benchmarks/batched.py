@@ -1,0 +1,131 @@
+"""Replica-steps per second of the batched torch time loop against the DOLFINx/PETSc and C paths.
+
+Two grids, each in one run beside its baseline (one process, one thread each):
+
+- the report's 60 x 60 grid, implicit scheme: ``BatchedMonodomain`` with B = 1, 8, 64, 512
+  replicas against ``MonodomainMitchellSchaeffer`` (PETSc CG + ICC, C right-hand side), one
+  replica; goal: B = 64 >= 4x the replica-steps (hence decisions) per second of the PETSc path;
+- the resolved 1000 x 1000 grid, explicit scheme: B = 1, 8 against the compiled C pass of
+  ``MonodomainMitchellSchaeffer(scheme="explicit")``; goal: per replica-step within 1.5x of it.
+
+The state is a front running into resting tissue (u = 1 on x < -40, w = 1): the work per step
+does not depend on it, except the CG iterations (counted). The GPU row needs a CUDA device
+(``--device cuda``). Writes benchmarks/results/batched.txt with the command and load average.
+
+    python benchmarks/batched.py [--replicas 1 8 64 512] [--resolved-replicas 1 8] [--steps 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import physicsrl.fem  # noqa: F401  (first: loads the MPI library)
+
+# isort: split
+
+import torch
+from mpi4py import MPI
+
+from physicsrl.coordinated import Coordinator
+from physicsrl.envs.atp import MSModel
+from physicsrl.envs.task import SquareMesh
+from physicsrl.fem import MonodomainMitchellSchaeffer
+from physicsrl.fem.batched import BatchedMonodomain
+
+
+def front(x):
+    return (x[0] < -40.0).astype(float)
+
+
+def reference_rate(domain, scheme: str, steps: int) -> float:
+    """Steps per second of the DOLFINx path on one replica (after one warm-up step)."""
+    ms = MonodomainMitchellSchaeffer(Coordinator(MPI.COMM_SELF), domain, u0=front, scheme=scheme)
+    with ms.coordinator:
+        ms.advance_time(ms.dt)
+        start = time.perf_counter()
+        ms.advance_time(steps * ms.dt)
+        return steps / (time.perf_counter() - start)
+
+
+def batched_rate(domain, scheme: str, replicas: int, steps: int, device: str):
+    """(replica-steps per second, CG iterations per step) of the torch loop."""
+    model = {**asdict(MSModel()), "scheme": scheme}
+    del model["warn_resolution"]  # an env setting
+    sim = BatchedMonodomain(domain, **model, device=device)
+    u = sim.nodal(front).expand(replicas, -1).clone()
+    w = torch.ones_like(u)
+    sim.advance(u, w, None, 1)
+    if device == "cuda":
+        torch.cuda.synchronize()
+    iterations = sim.iterations
+    start = time.perf_counter()
+    sim.advance(u, w, None, steps)
+    if device == "cuda":
+        torch.cuda.synchronize()
+    elapsed = time.perf_counter() - start
+    return replicas * steps / elapsed, (sim.iterations - iterations) / steps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--replicas", type=int, nargs="+", default=[1, 8, 64, 512])
+    parser.add_argument("--resolved-replicas", type=int, nargs="+", default=[1, 8])
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--resolved-cells", type=int, default=1000)
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    lines = [
+        "command: python " + " ".join(sys.argv),
+        f"load average before: {os.getloadavg()[0]:.2f} (2-core machine shared with other jobs)",
+        f"device: {args.device}; one process, torch threads 1",
+    ]
+
+    def report(line: str) -> None:
+        print(line, flush=True)
+        lines.append(line)
+
+    for line in lines:
+        print(line)
+    goals = []
+    report("\n60 x 60, implicit (report's scheme)")
+    domain = SquareMesh(60, 50.0, "quadrilateral").create(MPI.COMM_SELF)
+    petsc = reference_rate(domain, "implicit", args.steps * 5)
+    report(f"  PETSc path, 1 replica: {petsc:10.0f} replica-steps/s")
+    for B in args.replicas:
+        rate, iterations = batched_rate(domain, "implicit", B, args.steps, args.device)
+        report(
+            f"  torch B = {B:4d}:        {rate:10.0f} replica-steps/s ({rate / petsc:.2f}x PETSc, "
+            f"{iterations:.1f} CG iterations per step)"
+        )
+        if B == 64:
+            goals.append(("60 x 60 implicit, B = 64 >= 4x PETSc per replica", rate / petsc >= 4))
+
+    n = args.resolved_cells
+    report(f"\n{n} x {n}, explicit")
+    domain = SquareMesh(n, 50.0, "quadrilateral").create(MPI.COMM_SELF)
+    compiled = reference_rate(domain, "explicit", args.steps)
+    report(f"  compiled C path, 1 replica: {compiled:8.1f} replica-steps/s")
+    for B in args.resolved_replicas:
+        rate, _ = batched_rate(domain, "explicit", B, args.steps, args.device)
+        report(f"  torch B = {B:4d}: {rate:8.1f} replica-steps/s ({rate / compiled:.2f}x C)")
+        if B == args.resolved_replicas[-1]:
+            goals.append(
+                (f"{n} x {n} explicit, per replica-step within 1.5x of C", rate >= compiled / 1.5)
+            )
+    if args.device == "cpu":
+        report("\nGPU row: not measured (no GPU lent in this session)")
+    report(f"load average after: {os.getloadavg()[0]:.2f}")
+    for name, met in goals:
+        report(f"goal {'met' if met else 'MISSED'}: {name}")
+    out = Path(__file__).parent / "results" / f"batched-{args.device}.txt"
+    out.write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()

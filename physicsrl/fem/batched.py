@@ -1,0 +1,332 @@
+r"""The Mitchell-Schaeffer time loop on torch for B replicas at once (CPU or CUDA).
+
+DOLFINx builds the operators once, on a mesh of this process alone (``MPI.COMM_SELF``: each rank
+owns its replicas on its own copy of the mesh); the time loop is then torch only. The state is
+two tensors ``u``, ``w`` of shape (B, n) (n dofs of the Lagrange degree-1 space), the applied
+current a tensor (B, c) of cell values (the DG0 dofs of :class:`MonodomainMitchellSchaeffer`'s
+``I_app``) or ``None``. Every step is a few sparse-dense products and elementwise passes over
+all B replicas; the schemes are those of :mod:`physicsrl.fem.monodomain` (``"implicit"``, the
+report's) and :mod:`physicsrl.fem.explicit` (``"explicit"``), for the same dt and constants.
+
+Implicit (the report's equations 4-5): gate by forward Euler, then solve
+
+.. math::
+
+    (M + \Delta t D K)\, u^{n+1} = (1 - \Delta t/\tau_\mathrm{out}) M u^n
+        + \frac{\Delta t}{\tau_\mathrm{in}} \int_\Omega w^n (u^n)^2 (1 - u^n) \phi_i\, dx
+        + \Delta t\, P I,
+    \qquad P_{ic} = \int_c \phi_i\, dx,
+
+with M, K the consistent mass and stiffness and P the mixed (P1 test, DG0 trial) mass. The
+reaction integral is the exact quadrature of :class:`~physicsrl.fem.quadrature.CellQuadrature`
+(degree 5 per direction): gather the cells' dofs, values at the points (one small matrix
+product), integrand, cell vectors, ``index_add_`` into the dofs, all replicas at once. This is
+the quadrature sum of :class:`~physicsrl.fem.monodomain.MitchellSchaefferRHS` with the linear
+terms moved into M and P (exact either way). The solve is conjugate gradients with a Jacobi
+preconditioner on all B right-hand sides together (one sparse product with an (n, B) block per
+iteration), warm-started from u^n, until every replica's preconditioned residual is below
+``rtol`` times that of its right-hand side (PETSc's test with ``ksp_rtol``; the PETSc path uses
+ICC, so the two differ within the solver tolerance).
+
+Explicit (lumped mass :math:`m_i = \sum_j M_{ij}`, :func:`~physicsrl.fem.explicit.lumped_mass`):
+
+.. math::
+
+    u^{n+1} = C u^n + \Delta t\big(w^n (u^n)^2 (1 - u^n)/\tau_\mathrm{in} - u^n/\tau_\mathrm{out}
+        + M_L^{-1} P I\big), \qquad C = I - \Delta t D M_L^{-1} K,
+
+with the stability limit of :class:`~physicsrl.fem.explicit.ExplicitStep` (refused above it).
+
+Precision: float64 by default on the CPU, float32 on CUDA (``dtype`` overrides). The potential
+is O(1) and every step adds O(dt) increments, so float32's relative rounding of 6e-8 per step
+accumulates far below the schemes' own O(h^2 + dt) errors: the conduction velocity and action
+potential duration of a planar wave (explicit, h = 0.1) differ from float64 by 2e-6 and 7e-5
+relative (0.11991 mm/ms, 140.4 ms; ``tests/test_fem_batched.py`` asserts < 0.5%). The CG
+tolerance is raised to the dtype's reach (``rtol`` is floored at 100 x its machine epsilon).
+"""
+
+from __future__ import annotations
+
+import warnings
+from contextlib import contextmanager
+
+import numpy as np
+import scipy.sparse
+import torch
+import ufl
+from dolfinx import fem, mesh
+
+from physicsrl.fem.errors import InvalidValue, SimulationDiverged
+from physicsrl.fem.explicit import lumped_mass
+from physicsrl.fem.monodomain import SCHEMES
+from physicsrl.fem.quadrature import CellQuadrature
+from physicsrl.fem.resolution import resolution
+from physicsrl.fem.values import finite, positive
+
+CG_RTOL = 1e-10
+"""Relative tolerance of the batched CG (that of :data:`~physicsrl.fem.DEFAULT_PETSC_OPTIONS`)."""
+
+CG_MAX_ITERATIONS = 1000
+
+
+def default_device() -> str:
+    """``"cuda"`` when torch sees a GPU, else ``"cpu"``."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _sparse(matrix, device, dtype) -> torch.Tensor:
+    """A scipy CSR matrix as a torch sparse CSR tensor."""
+    matrix = matrix.tocsr()
+    matrix.sort_indices()
+    with warnings.catch_warnings():  # "sparse CSR support is in beta"
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(
+            torch.tensor(matrix.indptr, dtype=torch.int64),
+            torch.tensor(matrix.indices, dtype=torch.int64),
+            torch.tensor(matrix.data),
+            size=matrix.shape,
+        ).to(device=device, dtype=dtype)
+
+
+def _assemble(form) -> object:
+    """The scipy CSR matrix of a bilinear form on a COMM_SELF mesh."""
+    return fem.assemble_matrix(fem.form(form)).to_scipy()
+
+
+class BatchedMonodomain:
+    """Operators and time loop of the monodomain Mitchell-Schaeffer model for B replicas
+    (module docstring).
+
+    Parameters
+    ----------
+    domain:
+        A DOLFINx mesh on ``MPI.COMM_SELF``.
+    tau_in, tau_out, tau_open, tau_close, u_gate, D, dt:
+        As :class:`~physicsrl.fem.MonodomainMitchellSchaeffer` (the report's values:
+        ``dataclasses.asdict(physicsrl.envs.atp.MSModel())``).
+    scheme, substeps:
+        ``"implicit"`` or ``"explicit"`` with ``substeps`` sub-steps per dt (explicit only).
+    device, dtype:
+        Where the tensors live (default :func:`default_device`) and their precision (default
+        float64 on the CPU, float32 on CUDA).
+    rtol:
+        CG tolerance of the implicit scheme.
+    threads:
+        torch's CPU threads during the time loop (default 1: one rank per core, as MPI codes
+        run; torch's default of every core made the planar-wave test 20x slower on the
+        2-core machine shared with other processes).
+
+    Attributes
+    ----------
+    V:
+        The degree-1 Lagrange space of u and w; ``V.tabulate_dof_coordinates()`` are the nodes.
+    num_dofs, num_cells:
+        n and c of the state (B, n) and the current (B, c).
+    iterations:
+        CG iterations of all implicit steps so far.
+    resolution:
+        How well the mesh resolves the front (:func:`physicsrl.fem.resolution.resolution`).
+    """
+
+    def __init__(
+        self,
+        domain: mesh.Mesh,
+        *,
+        tau_in: float,
+        tau_out: float,
+        tau_open: float,
+        tau_close: float,
+        u_gate: float,
+        D: float,
+        dt: float,
+        scheme: str = SCHEMES[0],
+        substeps: int = 1,
+        device: str | torch.device | None = None,
+        dtype: torch.dtype | None = None,
+        rtol: float = CG_RTOL,
+        threads: int = 1,
+    ):
+        if domain.comm.size != 1:
+            raise InvalidValue("BatchedMonodomain: the mesh must live on MPI.COMM_SELF")
+        if scheme not in SCHEMES:
+            raise InvalidValue(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+        if not isinstance(substeps, int) or substeps < 1 or (scheme != "explicit" and substeps > 1):
+            raise InvalidValue(
+                f"substeps must be an integer >= 1 (1 unless scheme='explicit'), got {substeps!r}"
+            )
+        rates = {"tau_in": tau_in, "tau_out": tau_out, "tau_open": tau_open}
+        for name, value in {**rates, "tau_close": tau_close, "D": D, "dt": dt}.items():
+            positive(name, value)
+        self.u_gate = finite("u_gate", u_gate)
+        self.device = torch.device(default_device() if device is None else device)
+        self.dtype = dtype or (torch.float32 if self.device.type == "cuda" else torch.float64)
+        self.scheme, self.substeps, self.dt = scheme, substeps, float(dt)
+        self.iterations = 0
+        self.threads = int(threads)
+        self.resolution = resolution(domain, D, tau_in, scheme)
+        V = self.V = fem.functionspace(domain, ("Lagrange", 1))
+        Q = fem.functionspace(domain, ("DG", 0))
+        self.num_dofs = V.dofmap.index_map.size_local
+        self.num_cells = Q.dofmap.index_map.size_local
+        u, v, q = ufl.TrialFunction(V), ufl.TestFunction(V), ufl.TrialFunction(Q)
+        mass, stiffness = (
+            _assemble(u * v * ufl.dx),
+            _assemble(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx),
+        )
+        current = _assemble(q * v * ufl.dx)  # P, (n, c)
+        h = self.dt / substeps  # the (sub-)step
+        self._gate = (u_gate, 1.0 - h / tau_open, h / tau_open, 1.0 - h / tau_close)
+        self._k_in, self._k_out = h / tau_in, h / tau_out
+        if scheme == "explicit":
+            m = lumped_mass(V)
+            row_sums = np.asarray(abs(stiffness).sum(axis=1)).ravel()
+            self.dt_max = 2.0 / (D * float((row_sums / m).max()))
+            if h > self.dt_max:
+                raise InvalidValue(
+                    f"dt / substeps = {h:g} exceeds the explicit scheme's stability limit "
+                    f"{self.dt_max:.4g} on {self.num_cells} cells: raise substeps or use "
+                    "scheme='implicit'"
+                )
+            inverse = scipy.sparse.diags(1.0 / m)
+            self._C = _sparse(
+                scipy.sparse.identity(len(m)) - h * D * inverse @ stiffness, self.device, self.dtype
+            )
+            self._current = _sparse(h * inverse @ current, self.device, self.dtype)
+            return
+        A = mass + self.dt * D * stiffness
+        self._A = _sparse(A, self.device, self.dtype)
+        self._inverse_diagonal = self.tensor(1.0 / A.diagonal())[:, None]
+        self._M = _sparse(mass, self.device, self.dtype)
+        self._current = _sparse(self.dt * current, self.device, self.dtype)
+        self.rtol = max(float(rtol), 100 * torch.finfo(self.dtype).eps)
+        quadrature = CellQuadrature(V, 5)  # exact: w u^3 phi has degree 5 (per direction)
+        self._dofs_t = torch.tensor(quadrature.dofs.T, dtype=torch.int64, device=self.device)
+        self._phi = torch.as_tensor(quadrature.phi, device=self.device).to(self.dtype)  # (q, d)
+        self._phi_t = self._phi.T.contiguous()
+        weights = (
+            quadrature.cell_det[:, None] * quadrature.point_weights[None, :]
+            if quadrature.affine
+            else quadrature.point_weights
+        )
+        self._weights = self.tensor(self._k_in * weights.T)  # (q, cells)
+        # values per block of the reaction: one block on a GPU; ~1 MB work arrays on a CPU
+        self.block_values = 2**62 if self.device.type == "cuda" else 2**17
+
+    # state --------------------------------------------------------------------------------
+    def nodal(self, f) -> torch.Tensor:
+        """The nodal values (n,) of a number or a callable ``f(x)`` (x of shape (3, n)), as the
+        state's tensors hold them."""
+        x = self.V.tabulate_dof_coordinates().T
+        values = np.broadcast_to(f(x) if callable(f) else float(f), (self.num_dofs,))
+        return torch.as_tensor(np.array(values), device=self.device).to(self.dtype)
+
+    def tensor(self, array) -> torch.Tensor:
+        """``array`` on the device with the state's dtype."""
+        return torch.as_tensor(array, device=self.device).to(self.dtype)
+
+    # stepping -----------------------------------------------------------------------------
+    def steps(self, T: float) -> int:
+        """The number of steps of dt in T (rounded: 50 / 0.03 is not whole)."""
+        return round(T / self.dt)
+
+    def advance(self, u: torch.Tensor, w: torch.Tensor, current, steps: int) -> torch.Tensor:
+        """Run ``steps`` steps of dt on ``u``, ``w`` (B, n), in place, with the current
+        ``current`` ((B, c) cell values or None); return whether each replica's u is still
+        finite, (B,) bool (a replica that is not does not stop the others). Inside, the
+        replicas are columns ((n, B): sparse products and gathers then move contiguous rows of
+        B values)."""
+        with self._threads():
+            U, W = u.T.contiguous(), w.T.contiguous()
+            forcing = None if current is None else self._current @ current.T.to(self.dtype)
+            if self.scheme == "explicit":
+                for _ in range(steps * self.substeps):
+                    self._explicit_step(U, W, forcing)
+            else:
+                for _ in range(steps):
+                    self._implicit_step(U, W, forcing)
+            u.copy_(U.T)
+            w.copy_(W.T)
+            return torch.isfinite(u).all(dim=1)
+
+    @contextmanager
+    def _threads(self):
+        """torch's CPU threads set to :attr:`threads` for the time loop, then restored."""
+        if self.device.type != "cpu":
+            yield
+            return
+        previous = torch.get_num_threads()
+        torch.set_num_threads(self.threads)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(previous)
+
+    def _gate_update(self, u: torch.Tensor, w: torch.Tensor) -> None:
+        """w <- forward Euler of the gate equation, from u^n and w^n."""
+        u_gate, a_open, b_open, a_close = self._gate
+        w.copy_(torch.where(u < u_gate, w * a_open + b_open, w * a_close))
+
+    def _explicit_step(self, u, w, forcing) -> None:
+        new = self._C @ u
+        new += u * (self._k_in * w * u * (1.0 - u) - self._k_out)
+        if forcing is not None:
+            new += forcing
+        self._gate_update(u, w)
+        u.copy_(new)
+
+    def reaction(self, u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        r"""(n, B): :math:`\frac{\Delta t}{\tau_\mathrm{in}} \int w u^2 (1 - u) \phi_i dx`
+        for the columns of ``u``, ``w`` (n, B), by the exact quadrature, in blocks of cells
+        whose (points, block, B) work arrays stay in cache."""
+        out = torch.zeros_like(u)
+        B, phi, phi_t = u.shape[1], self._phi, self._phi_t
+        block = max(1, self.block_values // (B * len(phi)))
+        for start in range(0, self.num_cells, block):
+            dofs = self._dofs_t[:, start : start + block]  # (d, cells)
+            flat = dofs.reshape(-1)
+            U = phi @ u.index_select(0, flat).view(len(dofs), -1)  # (q, cells B)
+            F = phi @ w.index_select(0, flat).view(len(dofs), -1)
+            F *= U
+            F *= U
+            F *= U.neg_().add_(1.0)
+            F.view(len(phi), -1, B).mul_(self._weights[:, start : start + block, None])
+            out.index_add_(0, flat, (phi_t @ F).view(-1, B))
+        return out
+
+    def _implicit_step(self, u, w, forcing) -> None:
+        b = self.reaction(u, w)
+        b += (1.0 - self._k_out) * (self._M @ u)
+        if forcing is not None:
+            b += forcing
+        self._gate_update(u, w)
+        self.solve(b, u)
+
+    def solve(self, b: torch.Tensor, x: torch.Tensor) -> None:
+        """(M + dt D K) x = b for the columns of b (n, B) by Jacobi-preconditioned CG, from
+        and into x, until every column's preconditioned residual is below rtol x its right-hand
+        side's. A column stops changing once it has converged, so that each replica's result
+        does not depend on the others in the batch."""
+        A, d = self._A, self._inverse_diagonal
+        r = b - A @ x
+        z = r * d
+        limit = self.rtol * torch.linalg.vector_norm(b * d, dim=0)
+        p = z.clone()
+        rz = (r * z).sum(dim=0)
+        zero = torch.zeros_like(rz)
+        for _ in range(CG_MAX_ITERATIONS):
+            norm = torch.linalg.vector_norm(z, dim=0)
+            active = (norm > limit) & torch.isfinite(norm)  # non-finite: diverged, left as is
+            if not bool(active.any()):
+                return
+            self.iterations += 1
+            Ap = A @ p
+            pAp = (p * Ap).sum(dim=0)
+            alpha = torch.where(active & (pAp > 0), rz / pAp, zero)
+            x.addcmul_(alpha, p)
+            r.addcmul_(alpha, Ap, value=-1.0)
+            torch.mul(r, d, out=z)
+            rz_new = (r * z).sum(dim=0)
+            beta = torch.where(rz > 0, rz_new / rz, zero)
+            p.mul_(beta).add_(z)
+            rz = rz_new
+        raise SimulationDiverged(f"CG did not converge in {CG_MAX_ITERATIONS} iterations")
