@@ -182,10 +182,10 @@ def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
 def test_prefill_and_pool():
     env = atp_env("env.reset.pool=3")
     with env.task.coordinator:
-        assert env.task.prefill(env.task.pool) == 3
-        assert env.task.prefill(env.task.pool) == 0
+        assert env.task.prefill(env.task.sampler.pool) == 3
+        assert env.task.prefill(env.task.sampler.pool) == 0
         draws = {env.task.draw(np.random.default_rng(s)) for s in range(20)}
-        assert draws == set(env.task.pool)
+        assert draws == set(env.task.sampler.pool)
 
 
 def test_atp_baselines():

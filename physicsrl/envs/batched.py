@@ -77,6 +77,11 @@ class BatchedATPEnv(EnvBase):
         if missing:
             raise ValueError(f"reward.name {reward.name!r} reads events {sorted(missing)}")
         B = integer("env.replicas", replicas, 1)
+        if config.induction != "report":
+            raise ValueError(
+                f"env.induction={config.induction!r}: the torch backend induces the report's "
+                "arrhythmia only (induction: report)"
+            )
         super().__init__(device="cpu", batch_size=[B])
         self.config, self.observation, self.reward_fn = config, observation, reward
         self.max_reset_attempts = max_reset_attempts
@@ -96,12 +101,11 @@ class BatchedATPEnv(EnvBase):
             .x.array[: sim.num_cells]
             .copy()
         )
-        self.sampler = ResetSampler(config.reset)
+        self.sampler = ResetSampler(config)
         settings = repr((config.mesh, config.model, config.reset, degree, "torch"))
         self.snapshots = SnapshotCache(
             config.snapshots.capacity, config.snapshots.directory, settings, MPI.COMM_SELF
         )
-        self.snapshots.load(sim.num_dofs)
         self.u = torch.zeros(B, sim.num_dofs, device=sim.device, dtype=sim.dtype)
         self.w = torch.ones_like(self.u)
         self.decisions = np.zeros(B, dtype=np.int64)
