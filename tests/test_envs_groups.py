@@ -61,3 +61,20 @@ def test_layout_errors(per_env, world, text):
         check_layout(per_env, world)
     assert f"env.ranks={per_env}" in str(error.value)
     assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(("ranks", "per_env"), [(2, 1), (4, 2)])
+@pytest.mark.parametrize(("mode", "status"), [("remote", None), ("learner", None), ("exit", 3)])
+def test_faults_end_every_group(ranks, per_env, mode, status):
+    """An exception in a remote group's simulator or on the learner ends every rank non-zero
+    with the traceback printed once; a clean sys.exit(3) on the learner exits 3, silently."""
+    result = run_mpi(
+        ranks, "tests/mpi_scripts/envs_groups_fault.py", mode, str(per_env), timeout=60, check=False
+    )
+    output = result.stdout + result.stderr
+    if status is None:
+        assert result.returncode != 0
+        assert output.count("Traceback") == 1, output
+    else:
+        assert result.returncode == status, output
+        assert "Traceback" not in output
