@@ -31,11 +31,13 @@ group ends the whole job through its coordinator (``MPI.Abort``).
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from mpi4py import MPI
 from tensordict import TensorDict, TensorDictBase
@@ -142,14 +144,20 @@ def _run(member: _Member, command: int, argument):
     raise ValueError(f"unknown command {command!r}")
 
 
-def serve(env: EnvBase, leaders: MPI.Comm, max_sleep_s: float = 0.002) -> int:
+def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: float = 0.002):
     """Answer world rank 0's requests for ``env`` (a group leader other than rank 0) until it
-    sends close; return the exit status it sends. Idle, the rank sleeps between polls (at most
-    ``max_sleep_s``) so that it leaves the core to the learner."""
+    sends close; return the exit status it sends. Between requests the rank polls: busily for
+    ``spin_s`` seconds (yielding the core when ranks outnumber cores), then sleeping at most
+    ``max_sleep_s`` between polls, so that it leaves the core to a learner that trains."""
     member = _Member(leaders.rank, env, None)
+    oversubscribed = leaders.Get_size() > len(os.sched_getaffinity(0))
     while True:
-        sleep = 1e-5
+        spin_until, sleep = time.perf_counter() + spin_s, 1e-5
         while not leaders.Iprobe(source=0, tag=_REQUEST):
+            if time.perf_counter() < spin_until:
+                if oversubscribed:
+                    os.sched_yield()
+                continue
             time.sleep(sleep)
             sleep = min(2 * sleep, max_sleep_s)
         command, argument = leaders.recv(source=0, tag=_REQUEST)
@@ -225,30 +233,27 @@ class GroupedEnv(EnvBase):
         self._all(_SET_RNG, list(states), range(n))
 
     # reset and step -----------------------------------------------------------------------
-    def reset_some(self, indices: Sequence[int]) -> dict[int, TensorDict]:
-        """Reset members ``indices``; their first tensordicts (unbatched)."""
+    def reset_some(self, indices: Sequence[int]) -> dict[int, dict]:
+        """Reset members ``indices``; their first values (key -> numpy array, unbatched)."""
         results = self._all(_RESET, [None] * len(indices), indices)
         for i, leaves in zip(indices, results, strict=True):
             self._last[i] = leaves
-        return {i: _tensordict(leaves) for i, leaves in zip(indices, results, strict=True)}
+        return dict(zip(indices, results, strict=True))
 
-    def step_some(self, actions: dict[int, int]) -> dict[int, TensorDict]:
-        """Step members ``actions.keys()`` with their actions; their next tensordicts."""
+    def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
+        """Step members ``actions.keys()`` with their actions; their next values."""
         indices = list(actions)
-        results = self._all(_STEP, [actions[i] for i in indices], indices)
-        return {i: _tensordict(leaves) for i, leaves in zip(indices, results, strict=True)}
+        return dict(zip(indices, self._all(_STEP, list(actions.values()), indices), strict=True))
 
-    def _batch(self, rows: dict[int, TensorDict]) -> TensorDict:
-        """Stack per-member rows, filling absent members with their last reset values (they
-        are masked out by TorchRL's partial-reset update)."""
-        n = self.batch_size[0]
-        filled = [rows.get(i) for i in range(n)]
-        template = next(row for row in filled if row is not None)
-        for i, row in enumerate(filled):
-            if row is None:
-                last = self._last[i]
-                filled[i] = template.clone().zero_() if last is None else _tensordict(last)
-        return torch.stack(filled)
+    def _batch(self, rows: dict[int, dict]) -> TensorDict:
+        """Stack per-member values into one tensordict of batch size [N]; absent members get
+        their last reset values (TorchRL's partial-reset update masks them out)."""
+        filled = [rows.get(i, self._last[i]) for i in range(self.batch_size[0])]
+        keys = next(iter(rows.values())).keys()
+        return TensorDict(
+            {key: torch.from_numpy(np.stack([row[key] for row in filled])) for key in keys},
+            self.batch_size,
+        )
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
         n = self.batch_size[0]
@@ -278,13 +283,13 @@ def run_episodes(
         chunk = list(seeds[start : start + n])
         members = list(range(len(chunk)))
         env.seed_each(chunk, members)
-        current = env.reset_some(members)
+        current = {i: _tensordict(v) for i, v in env.reset_some(members).items()}
         steps: dict[int, list[TensorDict]] = {i: [] for i in members}
         for _ in range(max_steps):
             if not current:
                 break
             actions = {i: int(policy(td.clone())["action"]) for i, td in current.items()}
-            following = env.step_some(actions)
+            following = {i: _tensordict(v) for i, v in env.step_some(actions).items()}
             for i, td in following.items():
                 step = current[i].clone()
                 step["action"] = torch.as_tensor(actions[i])
