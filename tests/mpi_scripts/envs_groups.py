@@ -15,6 +15,7 @@ from torchrl.envs.utils import check_env_specs
 from physicsrl.coordinated import Coordinator, abort_on_error
 from physicsrl.envs import load_config, make_env
 from physicsrl.envs.groups import environments, member_seed, run_episodes
+from physicsrl.envs.gym import GymVectorEnv
 
 SEED, STEPS, EVAL_SEEDS = 7, 14, [100, 101, 102]
 
@@ -54,6 +55,13 @@ with abort_on_error():
             evaluated = (
                 [episode(r) for r in run_episodes(env, policy, EVAL_SEEDS, 10)] if n > 1 else []
             )
+            vector_rewards = []
+            if n > 1:
+                vector = GymVectorEnv(env)
+                _, info = vector.reset(seed=SEED)
+                for _ in range(STEPS):
+                    _, reward, _, _, info = vector.step(info["step"] % 3 != 2)
+                    vector_rewards.append(reward.tolist())
             check_env_specs(env)
     if MPI.COMM_WORLD.rank == 0:
         coordinator = Coordinator(MPI.COMM_SELF)
@@ -73,6 +81,7 @@ with abort_on_error():
             "serial": serial,
             "evaluated": evaluated,
             "serial_eval": serial_eval,
+            "vector_rewards": vector_rewards,
         }
         with open(out, "w") as f:
             json.dump(result, f)
