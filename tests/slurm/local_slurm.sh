@@ -68,6 +68,12 @@ CONF
 }
 
 stop() {
+  export SLURM_CONF=$conf
+  for _ in $(seq 20); do  # let finished jobs clear before their daemons go
+    [ -z "$(squeue -h 2>/dev/null)" ] && break
+    sleep 1
+  done
+  pkill -x slurmstepd 2>/dev/null || true
   for pid in "$root"/slurmd.pid "$root"/slurmctld.pid "$root"/munge/munged.pid; do
     [ -f "$pid" ] && kill "$(cat "$pid")" 2>/dev/null || true
   done
