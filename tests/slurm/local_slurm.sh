@@ -64,16 +64,18 @@ CONF
     [ "$state" = idle ] && { echo "local Slurm up: SLURM_CONF=$conf"; return 0; }
     sleep 1
   done
+  stop >/dev/null
   cannot "bring node $host up (state: ${state:-none}; see $root/log)"
 }
 
 stop() {
+  [ -f "$conf" ] || return 0
   export SLURM_CONF=$conf
   for _ in $(seq 20); do  # let finished jobs clear before their daemons go
     [ -z "$(squeue -h 2>/dev/null)" ] && break
     sleep 1
   done
-  pkill -x slurmstepd 2>/dev/null || true
+  scancel --quiet --user="$(id -un)" 2>/dev/null || true
   for pid in "$root"/slurmd.pid "$root"/slurmctld.pid "$root"/munge/munged.pid; do
     [ -f "$pid" ] && kill "$(cat "$pid")" 2>/dev/null || true
   done
