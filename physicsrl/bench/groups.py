@@ -75,21 +75,9 @@ def _timed_steps(env: EnvBase, steps: int, shock_every: int) -> tuple[float, flo
 def run(cfg) -> list[dict]:
     world = MPI.COMM_WORLD
     P = int(cfg.env_ranks)
-    config = load_config("ms", "catheter", "atp", [*cfg.overrides, *FIXED_LENGTH], seed=cfg.seed)
     rows = []
-    layout = {"ranks": world.size, "ranks_per_env": P, "envs": world.size // P}
-    with environments(lambda c: make_env(config, c), P, seed=cfg.seed) as env:
-        if env is not None:
-            reset_s, steps_s = _timed_steps(env, cfg.decisions, cfg.shock_every)
-            rows.append(
-                {
-                    "what": "atp",
-                    **layout,
-                    "reset_s": round(reset_s, 3),
-                    "step_ms": round(1e3 * steps_s / cfg.decisions, 3),
-                    "transitions_per_s": round(layout["envs"] * cfg.decisions / steps_s, 3),
-                }
-            )
+    if cfg.atp:
+        rows.append(_atp_row(cfg, world, P))
     with environments(lambda c: NoOpEnv(), 1) as env:
         if env is not None:
             _timed_steps(env, 10, cfg.shock_every)  # warm-up
@@ -104,3 +92,22 @@ def run(cfg) -> list[dict]:
                 }
             )
     return rows
+
+
+def _atp_row(cfg, world: MPI.Comm, P: int) -> dict | None:
+    """The ATP row (on the learner; None elsewhere)."""
+    config = load_config("ms", "catheter", "atp", [*cfg.overrides, *FIXED_LENGTH], seed=cfg.seed)
+    with environments(lambda c: make_env(config, c), P, seed=cfg.seed) as env:
+        if env is None:
+            return None
+        n = world.size // P
+        reset_s, steps_s = _timed_steps(env, cfg.decisions, cfg.shock_every)
+        return {
+            "what": "atp",
+            "ranks": world.size,
+            "ranks_per_env": P,
+            "envs": n,
+            "reset_s": round(reset_s, 3),
+            "step_ms": round(1e3 * steps_s / cfg.decisions, 3),
+            "transitions_per_s": round(n * cfg.decisions / steps_s, 3),
+        }
