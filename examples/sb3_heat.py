@@ -15,7 +15,7 @@ import numpy as np
 
 from physicsrl.coordinated import Coordinator, abort_on_error
 from physicsrl.envs import exact_optimum, load_config, make_env
-from physicsrl.envs.gym import GymEnv
+from physicsrl.envs.gym import GymnasiumView
 
 
 def main() -> None:
@@ -34,7 +34,7 @@ def main() -> None:
             return
         from stable_baselines3 import DQN
 
-        gym_env = GymEnv(env)
+        gym_env = GymnasiumView(env)
         model = DQN(
             "MlpPolicy",
             gym_env,

@@ -1,4 +1,4 @@
-"""Your own task in under 100 lines: a thermostat on the heat equation.
+"""Your own task in about 100 lines: a thermostat on the heat equation.
 
 A plate obeys du/dt = lap(u) + f with u = 0 on the boundary. Every 0.1 time units the agent
 switches a heater off (f = 0) or on (f = heat); it is paid -|mean temperature - target| per
@@ -15,10 +15,12 @@ import numpy as np
 import torch
 
 from physicsrl.builders import make_q_network
+from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.dojo import Dojo
 from physicsrl.envs import PhysicsEnv, Quadrants, Reward, SquareMesh, Task, Transition
 from physicsrl.envs.baselines import Constant
+from physicsrl.evaluation import compare
 from physicsrl.fem import HeatEnvironment
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 
@@ -36,6 +38,10 @@ class ThermostatTask(Task):
     """Simulator side: one parallel call per reset and per step, on every rank."""
 
     name, n_actions, events = "thermostat", 2, frozenset({"mean"})
+    action_counts = {"heating": 1}  # reported per evaluated episode
+
+    def baselines(self, env, seeds, seed):
+        return {"heater off": Constant(0), "heater on": Constant(1)}
 
     def __init__(self, coordinator: Coordinator, config: Thermostat):
         self.config, self.max_steps, self.observation = config, config.max_steps, Quadrants()
@@ -78,18 +84,17 @@ class KeepTarget(Reward):
 
 def main(iterations: int) -> dict[str, float]:
     coordinator = Coordinator()
-    env = PhysicsEnv(ThermostatTask(coordinator, Thermostat()), KeepTarget(), seed=0)
+    task = ThermostatTask(coordinator, Thermostat())
+    env = PhysicsEnv(task, KeepTarget(), seed=0)
     with coordinator:
         if coordinator.is_leader():
             torch.manual_seed(0)
             dojo = Dojo(make_q_network(env), env, frames_per_batch=20, learning_starts=100)
             dojo.train(iterations)
-            policies = {"greedy DQN": None, "heater off": Constant(0), "heater on": Constant(1)}
-            seeds = range(10**9, 10**9 + 5)
-            returns = {
-                name: dojo.evaluate(policy, seeds, record=False)["return"]
-                for name, policy in policies.items()
-            }
+            seeds = held_out_seeds(5)
+            policies = {"greedy DQN": dojo.q_network, **task.baselines(env, seeds, 0)}
+            _, means = compare(env, policies, seeds, task.action_counts)
+            returns = {row["policy"]: row["return"] for row in means}
             print(", ".join(f"{name}: {value:.2f}" for name, value in returns.items()))
             return returns
 

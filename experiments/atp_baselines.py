@@ -7,7 +7,9 @@ The env is the training preset's (``physicsrl-train +experiment=EXPERIMENT``), c
 Hydra exactly as the training run composes it. Policies: never shock, always shock, random
 (p = 0.5), shock every 4th decision, and the best single shock: the decision of the one shock
 (or none) is chosen by mean return on the first ``--select-seeds`` seeds (every decision
-tried), then evaluated on all seeds; ``--single-shock K`` fixes the decision instead.
+tried), then evaluated on all seeds; ``--single-shock K`` fixes the decision instead. The
+policies and their names are the ATP task's baselines
+(:func:`~physicsrl.envs.baselines.atp_baselines`).
 ``--policies`` keeps only the named ones (never,always,random,every4,single). Seeds are the
 held-out evaluation seeds 1000000000, 1000000001, ...
 
@@ -25,28 +27,13 @@ import sys
 from pathlib import Path
 
 from physicsrl import builders
-from physicsrl.cli.eval import write_csv
-from physicsrl.cli.train import compose
+from physicsrl.cli.command import compose
+from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import Coordinator, abort_on_error
-from physicsrl.dojo import episode_metrics, held_out_seeds, mean_metrics
-from physicsrl.envs.baselines import (
-    Constant,
-    EveryKth,
-    RandomActions,
-    Schedule,
-    best_single_shock,
-)
+from physicsrl.envs.baselines import atp_baselines
+from physicsrl.evaluation import compare, write_csv
 
-
-def episode(env, policy, seed: int) -> dict:
-    """One episode of ``policy`` from the env seeded with ``seed``: return, success, shocks."""
-    env.set_seed(seed)
-    rollout = env.rollout(env.task.max_steps + 1, policy, break_when_any_done=True)
-    metrics = episode_metrics(rollout, {"shocks": 1})
-    return {k: metrics[k] for k in ("return", "success", "shocks", "length")}
-
-
-POLICIES = ("never", "always", "random", "every4", "single")
+POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order
 
 
 def main() -> None:
@@ -69,32 +56,18 @@ def main() -> None:
     cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
     coordinator = Coordinator()
     env = builders.make_env(cfg, coordinator)
-    seeds = list(held_out_seeds(args.seeds))
+    seeds = held_out_seeds(args.seeds)
     with abort_on_error(), coordinator:
         if not coordinator.is_leader():
             return
-        policies = {
-            "never": ("never shock", Constant(0)),
-            "always": ("always shock", Constant(1)),
-            "random": ("random (p=0.5)", RandomActions(0.5, seed=0)),
-            "every4": ("every 4th", EveryKth(4)),
-        }
-        if "single" in keep:
-            if args.single_shock is not None:
-                best = Schedule([args.single_shock])
-            else:
-                best, means = best_single_shock(env, seeds[: args.select_seeds])
-                print(f"mean return of one shock at each decision (None: none): {means}")
-            policies["single"] = (f"single shock {sorted(best.steps)}", best)
-        policies = dict(policies[k] for k in keep)
-        rows, per_seed = [], []
-        for name, policy in policies.items():
-            runs = [{"policy": name, "seed": s, **episode(env, policy, s)} for s in seeds]
-            per_seed.extend(runs)
-            numbers = [{k: v for k, v in r.items() if k not in ("policy", "seed")} for r in runs]
-            mean = mean_metrics(numbers)
-            rows.append({"policy": name, **{k: round(v, 3) for k, v in mean.items()}})
-            print(rows[-1], flush=True)
+        single = args.single_shock if "single" in keep else 0  # 0: no search when unused
+        policies = atp_baselines(env, seeds[: args.select_seeds], single_shock=single)
+        policies = {n: p for k, (n, p) in zip(POLICIES, policies.items(), strict=True) if k in keep}
+        per_seed, means = compare(env, policies, seeds, env.task.action_counts)
+        rows = [
+            {k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()} for r in means
+        ]
+        print(*rows, sep="\n", flush=True)
         args.out.mkdir(parents=True, exist_ok=True)
         write_csv(args.out / f"{args.experiment}_baselines.csv", rows)
         write_csv(args.out / f"{args.experiment}_baselines_per_seed.csv", per_seed)

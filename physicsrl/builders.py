@@ -1,15 +1,15 @@
 """Factories for the training runner: env, Q-network, exploration, loss, target updater, buffer.
 
-Each factory takes the config section named after the TorchRL object it builds (see
-``conf/train.yaml``) and returns that object, so that :class:`physicsrl.dojo.Dojo` can be used
-from Python with hand-made objects or from ``physicsrl-train`` with these.
+Each factory takes the typed config section (:mod:`physicsrl.config`) named after the TorchRL
+object it builds (None: that section's defaults) and returns that object, so that
+:class:`physicsrl.dojo.Dojo` can be used from Python with hand-made objects or from
+``physicsrl-train`` with these.
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
-from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +21,17 @@ from torchrl.data.replay_buffers import RandomSampler
 from torchrl.envs import EnvBase
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+
+from physicsrl.config import (
+    BufferConfig,
+    Exploration,
+    LossConfig,
+    Network,
+    OptimConfig,
+    Storage,
+    TargetConfig,
+    TargetKind,
+)
 
 __all__ = [
     "Normalizer",
@@ -34,19 +45,7 @@ __all__ = [
     "make_buffer",
 ]
 
-ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU}
-
-
-def _get(cfg: Any, key: str, default: Any = None) -> Any:
-    """``cfg[key]`` for dicts, DictConfigs and dataclasses alike, or ``default``."""
-    if cfg is None:
-        return default
-    if isinstance(cfg, Mapping):
-        return cfg.get(key, default)
-    try:
-        return cfg.get(key, default)  # DictConfig
-    except AttributeError:
-        return getattr(cfg, key, default)
+ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU}  # Activation
 
 
 # env ------------------------------------------------------------------------------------------
@@ -74,7 +73,7 @@ def make_env(cfg: Any, coordinator) -> EnvBase:
     ``coordinator``). ``env.factory: "module:function"`` (or ``"file.py:function"``) picks any
     factory with the signature of :func:`physicsrl.envs.make_env`; the default is that one.
     """
-    factory = _get(_get(cfg, "env"), "factory")
+    factory = cfg["env"].get("factory")
     if factory:
         return load_object(str(factory))(cfg, coordinator)
     from physicsrl import envs
@@ -137,7 +136,7 @@ class Inputs(nn.Sequential):
         return super().forward(self.concat(*inputs))
 
 
-def make_q_network(env: EnvBase, network: Any = None):
+def make_q_network(env: EnvBase, network: Network | None = None):
     """A greedy ``QValueActor``: inputs -> [Normalizer] -> MLP -> argmax over the actions.
 
     ``network``: ``inputs`` (the env keys the network reads, concatenated in this order;
@@ -145,24 +144,27 @@ def make_q_network(env: EnvBase, network: Any = None):
     ``hidden`` (list of layer widths), ``activation`` (relu, tanh, elu, gelu), ``normalize``
     (put a :class:`Normalizer` first; the Dojo fits it once from the first collected data).
     """
-    inputs = [str(key) for key in _get(network, "inputs", ["observation"])]
+    network = network or Network()
+    inputs = [str(key) for key in network.inputs]
     unknown = [key for key in inputs if key not in env.observation_spec.keys()]
-    if not inputs or unknown:
+    if unknown:
         raise ValueError(
             f"agent.network.inputs {inputs}: each must be one of the env's observation keys "
             f"{sorted(env.observation_spec.keys())}"
         )
-    hidden = list(_get(network, "hidden", [64, 64]))
-    activation = ACTIVATIONS[str(_get(network, "activation", "relu"))]
+    activation = ACTIVATIONS[network.activation.value]
     spec = env.action_spec
     n_actions = int(spec.space.n)
     n_obs = sum(int(env.observation_spec[key].shape[-1]) for key in inputs)
     layers: list[nn.Module] = []
-    if _get(network, "normalize", True):
+    if network.normalize:
         layers.append(Normalizer(n_obs))
     layers.append(
         MLP(
-            in_features=n_obs, out_features=n_actions, num_cells=hidden, activation_class=activation
+            in_features=n_obs,
+            out_features=n_actions,
+            num_cells=list(network.hidden),
+            activation_class=activation,
         )
     )
     return QValueActor(Inputs(*layers), in_keys=inputs, spec=spec)
@@ -173,71 +175,65 @@ def normalizer_of(q_network: nn.Module) -> Normalizer | None:
     return next((m for m in q_network.modules() if isinstance(m, Normalizer)), None)
 
 
-def make_exploration(q_network: TensorDictModule, env: EnvBase, exploration: Any = None):
+def make_exploration(
+    q_network: TensorDictModule, env: EnvBase, exploration: Exploration | None = None
+):
     """``TensorDictSequential(q_network, EGreedyModule)``: epsilon-greedy, annealed linearly
     from ``eps_init`` to ``eps_end`` over ``annealing_frames`` (call ``[-1].step(n)``)."""
+    exploration = exploration or Exploration()
     greedy = EGreedyModule(
         spec=env.action_spec,
-        eps_init=float(_get(exploration, "eps_init", 1.0)),
-        eps_end=float(_get(exploration, "eps_end", 0.05)),
-        annealing_num_steps=int(_get(exploration, "annealing_frames", 1000)),
+        eps_init=exploration.eps_init,
+        eps_end=exploration.eps_end,
+        annealing_num_steps=exploration.annealing_frames,
     )
     return TensorDictSequential(q_network, greedy)
 
 
-def make_loss(q_network: TensorDictModule, env: EnvBase, loss: Any = None) -> DQNLoss:
+def make_loss(q_network: TensorDictModule, env: EnvBase, loss: LossConfig | None = None) -> DQNLoss:
     """``DQNLoss`` with a target network and a TD(0) value estimator of discount ``gamma``."""
-    double_dqn = bool(_get(loss, "double_dqn", True))
+    loss = loss or LossConfig()
     module = DQNLoss(
         value_network=q_network,
-        loss_function=str(_get(loss, "loss_function", "smooth_l1")),
+        loss_function=loss.loss_function.value,
         delay_value=True,  # a target network (double DQN needs it too)
-        double_dqn=double_dqn,
+        double_dqn=loss.double_dqn,
         action_space=env.action_spec,
     )
-    module.make_value_estimator(gamma=float(_get(loss, "gamma", 0.99)))
+    module.make_value_estimator(gamma=loss.gamma)
     return module
 
 
-def make_target_updater(loss_module: DQNLoss, target: Any = None):
+def make_target_updater(loss_module: DQNLoss, target: TargetConfig | None = None):
     """``SoftUpdate(tau=...)`` (Polyak averaging every update) or ``HardUpdate`` (copy every
     ``period`` updates), from ``target.kind``."""
-    kind = str(_get(target, "kind", "soft"))
-    if kind == "soft":
-        return SoftUpdate(loss_module, tau=float(_get(target, "tau", 0.01)))
-    if kind == "hard":
-        return HardUpdate(
-            loss_module, value_network_update_interval=int(_get(target, "period", 100))
-        )
-    raise ValueError(f"target update kind {kind!r}: use 'soft' or 'hard'")
+    target = target or TargetConfig()
+    if target.kind is TargetKind.soft:
+        return SoftUpdate(loss_module, tau=target.tau)
+    return HardUpdate(loss_module, value_network_update_interval=target.period)
 
 
-def make_optimizer(loss_module: nn.Module, optim: Any = None) -> torch.optim.Optimizer:
+def make_optimizer(
+    loss_module: nn.Module, optim: OptimConfig | None = None
+) -> torch.optim.Optimizer:
     """Adam over the trainable parameters of the loss (the target network is not trainable)."""
+    optim = optim or OptimConfig()
     return torch.optim.Adam(
         [p for p in loss_module.parameters() if p.requires_grad],
-        lr=float(_get(optim, "lr", 1e-3)),
-        weight_decay=float(_get(optim, "weight_decay", 0.0)),
+        lr=optim.lr,
+        weight_decay=optim.weight_decay,
     )
 
 
-def make_buffer(buffer: Any = None, scratch_dir: str | Path | None = None) -> ReplayBuffer:
+def make_buffer(
+    buffer: BufferConfig | None = None, scratch_dir: str | Path | None = None
+) -> ReplayBuffer:
     """Uniform replay of ``size`` transitions in ``LazyTensorStorage`` (RAM) or, with
     ``storage: memmap``, ``LazyMemmapStorage`` (memory-mapped files under ``scratch_dir``)."""
-    size = int(_get(buffer, "size", 10_000))
-    storage_kind = str(_get(buffer, "storage", "tensor"))
-    if storage_kind == "tensor":
-        storage = LazyTensorStorage(size)
-    elif storage_kind == "memmap":
-        storage = LazyMemmapStorage(
-            size, scratch_dir=None if scratch_dir is None else str(scratch_dir)
-        )
+    buffer = buffer or BufferConfig()
+    if buffer.storage is Storage.tensor:
+        storage = LazyTensorStorage(buffer.size)
     else:
-        raise ValueError(f"buffer storage {storage_kind!r}: use 'tensor' or 'memmap'")
-    return ReplayBuffer(
-        storage=storage, sampler=RandomSampler(), batch_size=int(_get(buffer, "batch_size", 64))
-    )
-
-
-def seeds_range(start: int, count: int) -> Sequence[int]:
-    return list(range(int(start), int(start) + int(count)))
+        scratch = None if scratch_dir is None else str(scratch_dir)
+        storage = LazyMemmapStorage(buffer.size, scratch_dir=scratch)
+    return ReplayBuffer(storage=storage, sampler=RandomSampler(), batch_size=buffer.batch_size)

@@ -85,70 +85,16 @@ def find_run(resume: str, runs: Path, exclude: Path | None = None) -> Path:
 
 
 # random number generators ---------------------------------------------------------------------
-def _generators(obj: Any, depth: int = 0, seen: set | None = None):
-    """(path, generator) for the numpy/torch/python generators held by ``obj`` and its parts
-    (attributes, base envs, simulators), found by walking attributes a few levels deep."""
-    seen = set() if seen is None else seen
-    if depth > 3 or id(obj) in seen:
-        return
-    seen.add(id(obj))
-    attributes = getattr(obj, "__dict__", None)
-    if not isinstance(attributes, dict):
-        return
-    items = list(attributes.items()) + list((attributes.get("_modules") or {}).items())
-    for name, value in items:
-        if isinstance(value, np.random.Generator | torch.Generator | random.Random):
-            yield name, value
-        elif isinstance(value, np.random.RandomState):
-            yield name, value
-        elif _ours(value):
-            for path, generator in _generators(value, depth + 1, seen):
-                yield f"{name}.{path}", generator
-
-
-def _ours(value: Any) -> bool:
-    """Objects worth searching for generators: envs, transforms and simulators of physicsrl,
-    TorchRL or factories loaded from files (not tensors, modules of torch, or classes)."""
-    if isinstance(value, type) or not hasattr(value, "__dict__"):
-        return False
-    module = type(value).__module__
-    return module.startswith(("physicsrl", "torchrl.envs", "_physicsrl_", "train_toy"))
-
-
-def _get_state(generator) -> Any:
-    if isinstance(generator, np.random.Generator):
-        return generator.bit_generator.state
-    if isinstance(generator, np.random.RandomState):
-        return generator.get_state()
-    if isinstance(generator, torch.Generator):
-        return generator.get_state()
-    return generator.getstate()
-
-
-def _set_state(generator, state: Any) -> None:
-    if isinstance(generator, np.random.Generator):
-        generator.bit_generator.state = state
-    elif isinstance(generator, np.random.RandomState):
-        generator.set_state(state)
-    elif isinstance(generator, torch.Generator):
-        generator.set_state(state)
-    else:
-        generator.setstate(state)
-
-
 def rng_state(env: Any = None) -> dict:
-    """The global torch, numpy and python generator states, and those the env holds."""
+    """The global torch, numpy and python generator states, and the env's own
+    (``env.rng_state()``, for envs that hold a generator: :class:`~physicsrl.envs.PhysicsEnv`)."""
     state = {
         "torch": torch.get_rng_state(),
         "numpy": np.random.get_state(),
         "python": random.getstate(),
-        "env": {},
     }
-    if env is not None:
-        if hasattr(env, "rng_state") and callable(env.rng_state):
-            state["env"] = {"__method__": env.rng_state()}
-        else:
-            state["env"] = {path: _get_state(g) for path, g in _generators(env)}
+    if hasattr(env, "rng_state"):
+        state["env"] = env.rng_state()
     return state
 
 
@@ -156,12 +102,5 @@ def set_rng_state(state: dict, env: Any = None) -> None:
     torch.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
-    saved = state.get("env", {})
-    if env is None or not saved:
-        return
-    if "__method__" in saved:
-        env.set_rng_state(saved["__method__"])
-        return
-    for path, generator in _generators(env):
-        if path in saved:
-            _set_state(generator, saved[path])
+    if "env" in state and hasattr(env, "set_rng_state"):
+        env.set_rng_state(state["env"])

@@ -16,21 +16,20 @@ Run it on the leader inside ``with coordinator`` when the env drives a distribut
             dojo.train(200)
 
 Reproducibility: every collection batch starts from a reset of the env seeded with
-``train_seed(iteration)`` (``reset_at_each_iter``), and checkpoints hold the weights, target
-network, optimizer, replay buffer, counters and every random generator state (torch, numpy,
+:func:`physicsrl.config.train_seed` (``reset_at_each_iter``), and checkpoints hold the weights,
+target network, optimizer, replay buffer, counters and every random generator state (torch, numpy,
 python, the env's), so a resumed run repeats an uninterrupted one step for step when the env
 is deterministic given its seed.
 """
 
 from __future__ import annotations
 
-import csv
 import functools
 import logging
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,31 +39,22 @@ from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data.postprocs import MultiStep
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from physicsrl import builders
 from physicsrl.checkpoint import CheckpointManager, rng_state, set_rng_state
+from physicsrl.config import (
+    CheckpointConfig,
+    CollectorConfig,
+    Evaluation,
+    LossConfig,
+    OptimConfig,
+    train_seed,
+)
+from physicsrl.evaluation import mean_metrics, run_episode, write_csv
 
-__all__ = [
-    "Dojo",
-    "Counters",
-    "episode_metrics",
-    "held_out_seeds",
-    "n_step_transitions",
-    "EVAL_SEEDS",
-]
+__all__ = ["Dojo", "Counters", "n_step_transitions"]
 
 log = logging.getLogger("physicsrl.dojo")
-
-
-def held_out_seeds(n: int) -> tuple[int, ...]:
-    """The first ``n`` held-out evaluation seeds 1000000000, 1000000001, ... (training batches
-    use seed * 1e6 + iteration, so runs with seed < 1000 never meet them)."""
-    return tuple(range(1_000_000_000, 1_000_000_000 + n))
-
-
-EVAL_SEEDS = held_out_seeds(10)
-STANDARD_KEYS = {"observation", "reward", "done", "terminated", "truncated", "step"}
 
 
 @dataclass
@@ -74,25 +64,6 @@ class Counters:
     episodes: int = 0  # training episodes finished
     updates: int = 0  # gradient steps
     time_s: dict = field(default_factory=dict)  # cumulative seconds per phase
-
-
-def episode_metrics(rollout: TensorDictBase, action_counts: dict | None = None) -> dict:
-    """Return, length, the env's scalar flags at the end (success, diverged, ...) and, for
-    each ``name: action`` of ``action_counts``, how often that action was taken (shocks)."""
-    nxt = rollout["next"]
-    metrics = {"return": float(nxt["reward"].sum()), "length": int(rollout.shape[-1])}
-    last = nxt[-1]
-    for key in sorted(last.keys()):
-        if key in STANDARD_KEYS or not isinstance(key, str):
-            continue
-        value = last.get(key)
-        if isinstance(value, torch.Tensor) and value.numel() == 1:
-            metrics[key] = float(value)
-    action = rollout["action"]
-    chosen = action.argmax(-1) if action.dtype == torch.bool else action  # one-hot or index
-    for name, value in (action_counts or {}).items():
-        metrics[name] = int((chosen.reshape(-1) == value).sum())
-    return metrics
 
 
 def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> TensorDictBase:
@@ -113,14 +84,10 @@ def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> Tens
     return out
 
 
-def mean_metrics(rows: list[dict]) -> dict:
-    """The mean of each metric over ``rows`` (a metric missing from a row counts as 0)."""
-    keys = dict.fromkeys(k for row in rows for k in row)
-    return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}
-
-
 class Dojo:
     """DQN training pipeline: collect, store, learn, evaluate, log, checkpoint.
+
+    Defaults are those of :mod:`physicsrl.config`.
 
     Parameters
     ----------
@@ -146,15 +113,19 @@ class Dojo:
     reset_at_each_iter:
         Start every batch from a fresh episode seeded by :meth:`train_seed` (exact resume).
     seed:
-        Training seed: batch ``i`` resets the env with seed ``seed * 1_000_000 + i``.
-    eval_every, eval_seeds, eval_max_steps:
+        Training seed: batch ``i`` resets the env with :func:`~physicsrl.config.train_seed`.
+    eval_every, eval_seeds:
         Evaluate the greedy policy every ``eval_every`` iterations (0: only at the end) on
         one episode per held-out seed.
     log_dir:
         Run directory: TensorBoard events (``tensorboard/``), ``eval.csv`` and checkpoints
         (``checkpoints/``). ``None``: no files.
+    tensorboard:
+        Write TensorBoard events into ``log_dir``.
     checkpoint_every, keep_checkpoints:
         Checkpoint every so many iterations (0: only at the end or on a stop request).
+    checkpoint_extra:
+        Saved with every checkpoint under ``"extra"`` (``physicsrl-train``: the run's config).
     coordinator:
         The env's :class:`~physicsrl.coordinated.Coordinator`: time spent sending calls to the
         followers is reported as coordination time.
@@ -174,22 +145,23 @@ class Dojo:
         target_updater: Any = None,
         replay_buffer: Any = None,
         exploration: torch.nn.Module | None = None,
-        frames_per_batch: int = 16,
-        updates_per_batch: int = 4,
-        learning_starts: int = 200,
-        grad_clip: float | None = 10.0,
-        n_steps: int = 1,
-        reset_at_each_iter: bool = True,
+        frames_per_batch: int = CollectorConfig.frames_per_batch,
+        updates_per_batch: int = OptimConfig.updates_per_batch,
+        learning_starts: int = OptimConfig.learning_starts,
+        grad_clip: float | None = OptimConfig.grad_clip,
+        n_steps: int = LossConfig.n_steps,
+        reset_at_each_iter: bool = CollectorConfig.reset_at_each_iter,
         seed: int = 0,
-        eval_every: int = 10,
-        eval_seeds: Iterable[int] = EVAL_SEEDS,
-        eval_max_steps: int = 10_000,
+        eval_every: int = Evaluation.every,
+        eval_seeds: Iterable[int] | None = None,
         log_dir: str | Path | None = None,
+        tensorboard: bool = True,
         checkpoint_every: int = 0,
-        keep_checkpoints: int = 3,
+        keep_checkpoints: int = CheckpointConfig.keep,
+        checkpoint_extra: Mapping | None = None,
         coordinator: Any = None,
         progress: bool = True,
-        action_counts: dict[str, int] | None = None,
+        action_counts: Mapping[str, int] | None = None,
     ):
         self.q_network = q_network
         self.env = env
@@ -206,10 +178,13 @@ class Dojo:
         self.reset_at_each_iter = bool(reset_at_each_iter)
         self.seed = int(seed)
         self.eval_every = int(eval_every)
-        self.eval_seeds = [int(s) for s in eval_seeds]
-        self.eval_max_steps = int(eval_max_steps)
+        self.eval_seeds = [
+            int(s) for s in (Evaluation().seeds if eval_seeds is None else eval_seeds)
+        ]
         self.log_dir = None if log_dir is None else Path(log_dir)
+        self.tensorboard = tensorboard
         self.checkpoint_every = int(checkpoint_every)
+        self.checkpoint_extra = dict(checkpoint_extra or {})
         self.progress = progress
         self.action_counts = dict(action_counts or {})
         self.counters = Counters()
@@ -221,6 +196,8 @@ class Dojo:
         )
         self.writer = None
         self._stop_reason: str | None = None
+        self._saved_iteration = -1  # the iteration of the last checkpoint written or loaded
+        self._partial_return = 0.0  # of the episode running across batches
         self._pending_rng: dict | None = None
         self._collector: Collector | None = None
         self._coordination_s = 0.0
@@ -299,13 +276,9 @@ class Dojo:
         return self.summary()
 
     # the steps ----------------------------------------------------------------------------
-    def train_seed(self, iteration: int) -> int:
-        """The env seed of the batch collected at ``iteration`` (distinct from eval seeds)."""
-        return self.seed * 1_000_000 + iteration
-
     def _seed_next_batch(self) -> None:
         if self.reset_at_each_iter:
-            self.env.set_seed(self.train_seed(self.counters.iteration))
+            self.env.set_seed(train_seed(self.seed, self.counters.iteration))
 
     def _record_batch(self, data: TensorDictBase) -> list[float]:
         """Count frames and episodes; return the returns of the episodes finished here."""
@@ -313,7 +286,7 @@ class Dojo:
         self.counters.frames += n
         rewards = data["next", "reward"].reshape(n).tolist()
         dones = data["next", "done"].reshape(n).tolist()
-        if self.reset_at_each_iter or not hasattr(self, "_partial_return"):
+        if self.reset_at_each_iter:
             self._partial_return = 0.0
         returns = []
         for reward, done in zip(rewards, dones, strict=True):
@@ -349,13 +322,6 @@ class Dojo:
             losses.append(float(loss.detach()))
         return losses
 
-    def run_episode(self, policy: Callable, seed: int) -> dict:
-        """One episode of ``policy`` (deterministic mode) from the env seeded with ``seed``."""
-        self.env.set_seed(seed)
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            rollout = self.env.rollout(self.eval_max_steps, policy, break_when_any_done=True)
-        return {"seed": seed, **episode_metrics(rollout, self.action_counts)}
-
     def evaluate(
         self,
         policy: Callable | None = None,
@@ -365,12 +331,14 @@ class Dojo:
         """Average metrics of ``policy`` (default: the greedy Q-network) over ``seeds``
         (default: the held-out validation seeds); recorded in the history and logs."""
         started = time.perf_counter()
-        rows = [self.run_episode(policy or self.q_network, s) for s in seeds or self.eval_seeds]
-        metrics = mean_metrics([{k: v for k, v in row.items() if k != "seed"} for row in rows])
+        policy = policy or self.q_network
+        metrics = mean_metrics(
+            run_episode(self.env, policy, s, self.action_counts) for s in seeds or self.eval_seeds
+        )
         self._add_time("evaluation", time.perf_counter() - started)
         if self._collector is not None and not self.reset_at_each_iter:
             self._collector.reset()  # evaluation moved the env away from the batch in flight
-        if record and policy is None:
+        if record and policy is self.q_network:
             row = {"iteration": self.counters.iteration, "frames": self.counters.frames, **metrics}
             self.history.append(row)
             self._log_evaluation(row)
@@ -398,8 +366,6 @@ class Dojo:
         }
 
     # checkpoints --------------------------------------------------------------------------
-    _saved_iteration = -1
-
     def state_dict(self) -> dict:
         return {
             "format": 1,
@@ -432,7 +398,7 @@ class Dojo:
             return None
         started = time.perf_counter()
         state = self.state_dict()
-        state["extra"] = {**getattr(self, "checkpoint_extra", {}), **(extra or {})}
+        state["extra"] = {**self.checkpoint_extra, **(extra or {})}
         path = self.checkpoints.save(state, self.counters.iteration)
         self._saved_iteration = self.counters.iteration
         self._add_time("checkpoint", time.perf_counter() - started)
@@ -461,9 +427,11 @@ class Dojo:
     def _open_logs(self) -> None:
         if self.log_dir is None or self.writer is not None:
             return
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        if not self.tensorboard:
+            return
         from torch.utils.tensorboard import SummaryWriter
 
-        self.log_dir.mkdir(parents=True, exist_ok=True)
         # purge_step drops events a killed run wrote after its last checkpoint
         self.writer = SummaryWriter(
             str(self.log_dir / "tensorboard"), purge_step=self.counters.iteration + 1
@@ -492,11 +460,7 @@ class Dojo:
                     name = "success_rate" if key == "success" else key
                     self.writer.add_scalar(f"eval/{name}", value, row["iteration"])
         if self.log_dir is not None:
-            keys = list(dict.fromkeys(k for r in self.history for k in r))
-            with open(self.log_dir / "eval.csv", "w", newline="") as stream:
-                writer = csv.DictWriter(stream, fieldnames=keys)
-                writer.writeheader()
-                writer.writerows(self.history)
+            write_csv(self.log_dir / "eval.csv", self.history)
 
     def _progress_bar(self, iterations: int):
         if not self.progress:
@@ -558,8 +522,8 @@ class Dojo:
         return restore
 
     def _check_seeds(self, iterations: int) -> None:
-        last = self.train_seed(max(iterations - 1, 0))
-        clash = [s for s in self.eval_seeds if self.train_seed(0) <= s <= last]
+        first, last = train_seed(self.seed, 0), train_seed(self.seed, max(iterations - 1, 0))
+        clash = [s for s in self.eval_seeds if first <= s <= last]
         if clash and self.reset_at_each_iter:
             raise ValueError(f"eval seeds {clash[:3]} are also training seeds: choose others")
 

@@ -8,7 +8,8 @@ from torchrl.envs.utils import check_env_specs
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import ATPReward, HeatStop, exact_optimum, load_config, make_env
-from physicsrl.envs.baselines import Constant, HeatOptimal, evaluate
+from physicsrl.envs.baselines import Constant, HeatOptimal
+from physicsrl.evaluation import mean_metrics, run_episode
 
 SMALL_HEAT = ["env.mesh.cells=16"]
 
@@ -90,7 +91,7 @@ def test_heat_exact_optimum_matches_brute_force_and_beats_baselines():
         # The optimal policy attains each level's optimum and beats the other baselines.
         seeds = range(30)
         means = {
-            name: np.mean(evaluate(env, policy, seeds))
+            name: mean_metrics(run_episode(env, policy, s) for s in seeds)["return"]
             for name, policy in [
                 ("stop", Constant(0)),
                 ("never", Constant(1)),

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import load_config, make_env
-from physicsrl.envs.gym import GymEnv
+from physicsrl.envs.gym import GymnasiumView
 
 SCRIPT = "tests/mpi_scripts/envs_determinism.py"
 
@@ -26,7 +26,7 @@ SCRIPT = "tests/mpi_scripts/envs_determinism.py"
 def test_gymnasium_checker(groups, overrides):
     env = make_env(load_config(*groups, overrides), Coordinator())
     with env.task.coordinator:
-        check_env(GymEnv(env), skip_render_check=True)
+        check_env(GymnasiumView(env), skip_render_check=True)
 
 
 def test_same_seed_same_trajectory_on_1_and_2_ranks():

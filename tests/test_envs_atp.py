@@ -16,7 +16,8 @@ from torchrl.envs.utils import check_env_specs
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import ATPReward, Catheter, load_config, make_env
-from physicsrl.envs.baselines import Constant, EveryKth, Schedule, best_single_shock, evaluate
+from physicsrl.envs.baselines import Constant, EveryKth, Schedule, best_single_shock
+from physicsrl.evaluation import run_episode
 from physicsrl.fem.integrals import WeightedIntegrals
 
 
@@ -190,6 +191,10 @@ def test_prefill_and_pool():
 def test_atp_baselines():
     env = atp_env()
     seeds = [0, 1]
+
+    def evaluate(env, policy, seeds):
+        return [run_episode(env, policy, s)["return"] for s in seeds]
+
     with env.task.coordinator:
         never = evaluate(env, Constant(0), seeds)
         always = evaluate(env, Constant(1), seeds)

@@ -1,6 +1,29 @@
-"""The README's examples run and do what they claim."""
+"""The README's examples run and do what they claim; every example runs on 1 and 2 ranks."""
 
 import re
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import ROOT
+
+EXAMPLES = sorted((ROOT / "examples").glob("*.py"))
+SMOKE = {"thermostat.py": ["2"], "sb3_heat.py": ["--steps", "300", "env.mesh.cells=8"]}
+
+
+@pytest.mark.parametrize("ranks", [1, 2])
+@pytest.mark.parametrize("example", EXAMPLES, ids=lambda path: path.name)
+def test_every_example_runs(mpi, example, ranks):
+    """A short run of each example (its smoke arguments), serially and under mpiexec -n 2."""
+    arguments = [str(example), *SMOKE.get(example.name, [])]
+    if ranks == 1:
+        result = subprocess.run(
+            [sys.executable, *arguments], capture_output=True, text=True, timeout=300, cwd=ROOT
+        )
+        assert result.returncode == 0, result.stderr
+    else:
+        mpi(2, *arguments, timeout=300)
 
 
 def test_thermostat_example_trains_a_policy_better_than_both_constant_ones(mpi):
@@ -11,8 +34,6 @@ def test_thermostat_example_trains_a_policy_better_than_both_constant_ones(mpi):
 
 
 def test_readme_quickstart_runs_under_mpi(mpi, tmp_path):
-    from tests.conftest import ROOT
-
     readme = (ROOT / "README.md").read_text()
     section = readme[readme.index("### Quickstart in Python") :]
     code = section[section.index("```python") + len("```python") : section.index("```\n\n")]

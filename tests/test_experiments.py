@@ -82,7 +82,7 @@ def test_atp_baselines_script_tables_each_policy(tmp_path):
     rows = {r["policy"]: r for r in csv.DictReader((tmp_path / "atp_baselines.csv").open())}
     assert list(rows)[:2] == ["never shock", "always shock"] and len(rows) == 3
     assert float(rows["never shock"]["shocks"]) == 0 and float(rows["always shock"]["shocks"]) == 4
-    single = next(r for name, r in rows.items() if name.startswith("single shock"))
+    single = next(r for name, r in rows.items() if name.startswith("best single shock"))
     assert float(single["shocks"]) <= 1
     assert "commit" in (tmp_path / "atp_baselines.txt").read_text()
 

@@ -74,6 +74,7 @@ def test_dojo_learns_a_known_optimum(n_steps):
     from train_toy_env import ToyChainEnv
 
     from physicsrl import builders
+    from physicsrl.config import BufferConfig, Exploration, Network
     from physicsrl.coordinated import Coordinator
     from physicsrl.dojo import Dojo
 
@@ -81,13 +82,15 @@ def test_dojo_learns_a_known_optimum(n_steps):
     coordinator = Coordinator()
     env = ToyChainEnv(coordinator, length=3)
     with coordinator:
-        q_network = builders.make_q_network(env, {"hidden": [32, 32]})
-        buffer = builders.make_buffer({"size": 500, "batch_size": 64})
+        q_network = builders.make_q_network(env, Network(hidden=[32, 32]))
+        buffer = builders.make_buffer(BufferConfig(size=500, batch_size=64))
         dojo = Dojo(
             q_network,
             env,
             replay_buffer=buffer,
-            exploration=builders.make_exploration(q_network, env, {"annealing_frames": 500}),
+            exploration=builders.make_exploration(
+                q_network, env, Exploration(annealing_frames=500)
+            ),
             frames_per_batch=16,
             learning_starts=64,
             n_steps=n_steps,
@@ -108,6 +111,7 @@ def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
     from torchrl.data import Categorical, Composite, Unbounded
 
     from physicsrl import builders
+    from physicsrl.config import LossConfig, Network
     from physicsrl.dojo import n_step_transitions
 
     ended = torch.tensor([[False], [False], [True], [False], [False], [False]])
@@ -134,8 +138,8 @@ def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
         observation_spec=Composite(observation=Unbounded(shape=(1,))),
         action_spec=Categorical(2),
     )
-    q_network = builders.make_q_network(env, {"hidden": [4], "normalize": False})
-    loss = builders.make_loss(q_network, env, {"gamma": 0.5, "double_dqn": False})
+    q_network = builders.make_q_network(env, Network(hidden=[4], normalize=False))
+    loss = builders.make_loss(q_network, env, LossConfig(gamma=0.5, double_dqn=False))
     target = loss.value_estimator.value_estimate(out.clone()).flatten()
     with torch.no_grad():
         best_next = q_network(out["next"].select("observation").clone())["chosen_action_value"]
@@ -150,6 +154,7 @@ def test_q_network_reads_its_inputs_concatenated():
     from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
     from physicsrl import builders
+    from physicsrl.config import Network
 
     env = SimpleNamespace(
         observation_spec=Composite(
@@ -157,7 +162,7 @@ def test_q_network_reads_its_inputs_concatenated():
         ),
         action_spec=Categorical(2),
     )
-    network = {"inputs": ["observation", "step"], "hidden": [8], "normalize": False}
+    network = Network(inputs=["observation", "step"], hidden=[8], normalize=False)
     q_network = builders.make_q_network(env, network)
     assert q_network.in_keys == ["observation", "step"]
     observation, step = torch.randn(5, 3), torch.arange(5)[:, None]
@@ -166,7 +171,7 @@ def test_q_network_reads_its_inputs_concatenated():
     expected = mlp[0](torch.cat([observation, step.float()], -1))
     assert torch.allclose(values["action_value"], expected)
     with pytest.raises(ValueError, match="agent.network.inputs.*'time'"):
-        builders.make_q_network(env, {"inputs": ["observation", "time"]})
+        builders.make_q_network(env, Network(inputs=["observation", "time"]))
 
 
 def test_mpi_run_writes_checkpoints_events_and_log_only_in_the_leader_run_dir(reference):
@@ -322,3 +327,58 @@ def test_eval_command_tables_a_trained_run(reference, tmp_path):
     rows = (out / "eval.csv").read_text().splitlines()
     assert rows[0].startswith("policy,seed,return,length") and len(rows) == 1 + 3
     assert [row.split(",")[1] for row in rows[1:]] == ["1000000000", "1000000001", "1000000002"]
+
+
+@pytest.mark.parametrize(
+    "command, override, message",
+    [
+        ("train", "agent.lr=inf", "agent.lr must be a finite number > 0, got inf"),
+        ("train", "optim.lr=nan", "optim.lr must be a finite number > 0"),
+        ("train", "agent.exploration.annealing_frames=-1", "annealing_frames must be an integer"),
+        ("train", "loss.n_steps=0", "loss.n_steps must be an integer >= 1, got 0"),
+        ("train", "loss.n_steps=-1", "loss.n_steps must be an integer >= 1, got -1"),
+        ("train", "checkpoint.keep=-1", "checkpoint.keep must be an integer >= 1, got -1"),
+        ("train", "agent.network.hidden=[0]", "agent.network.hidden[0] must be an integer >= 1"),
+        ("train", "agent.network.hidden=[64,-4]", "agent.network.hidden[1] must be an integer"),
+        ("train", "eval.seeds=[]", "eval.seeds must list at least one seed"),
+        ("train", "eval.seeds=[3]", "eval.seeds [3] are also training seeds"),
+        ("train", "loss.gamma=0", "loss.gamma must be a finite number > 0 and <= 1, got 0.0"),
+        ("train", "buffer.storage=disk", "'buffer.storage'"),
+        ("train", "+agent.network.depth=3", "unknown key 'agent.network.depth'"),
+        ("eval", "fps=0", "fps must be a finite number > 0, got 0.0"),
+        ("eval", "seeds=[]", "seeds must be N >= 1, a non-empty list of seeds, or null"),
+        ("eval", "seeds=0", "seeds must be an integer >= 1, got 0"),
+    ],
+)
+def test_bad_values_are_refused_by_the_typed_config(capsys, command, override, message):
+    """The range checks of physicsrl/config.py, as every command runs them before any work:
+    exit status 2 and one line naming the key."""
+    from physicsrl.cli.command import validate_or_exit
+
+    overrides = [override] if command == "train" else [override, f"run={TOY}"]
+    with pytest.raises(SystemExit) as exit_:
+        validate_or_exit(command, overrides, check=lambda cfg: None)
+    assert exit_.value.code == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and message in lines[0], lines
+
+
+def test_defaults_are_defined_once():
+    """The composed train config equals the typed config's defaults (the YAML sets none but
+    the groups), and the Dojo's defaults are the config's."""
+    import inspect
+
+    from physicsrl.cli.command import compose
+    from physicsrl.config import TrainConfig, as_dict
+    from physicsrl.dojo import Dojo
+
+    composed = as_dict(compose("train", []))
+    defaults = as_dict(TrainConfig())
+    for group in ("env", "observation", "reward"):  # the task's groups: their own YAML
+        composed.pop(group), defaults.pop(group)
+    assert composed == defaults
+    signature = inspect.signature(Dojo).parameters
+    config = TrainConfig()
+    assert signature["frames_per_batch"].default == config.collector.frames_per_batch
+    assert signature["updates_per_batch"].default == config.optim.updates_per_batch
+    assert signature["n_steps"].default == config.loss.n_steps

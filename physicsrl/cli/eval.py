@@ -11,43 +11,16 @@ go to this command's run directory.
 
 from __future__ import annotations
 
-import csv
-import sys
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
-from physicsrl.cli.train import Mpi, check_keys, validate_or_exit
-from physicsrl.launch import output_dir, relaunch, run_hydra
-
-
-@dataclass
-class EvalConfig:
-    mpi: Mpi = field(default_factory=Mpi)
-    run: str = "???"  # a run directory (its latest checkpoint) or a checkpoint file
-    seeds: Any = None  # null: the run's eval.seeds; a list of seeds; or N: the first N held out
-    baselines: bool = True
-    gif: bool = True
-    gif_seed: Any = None  # null: the first seed the greedy policy succeeds on (else the first)
-    fps: float = 1.5
-    curve: bool = True  # learning_curve.png from the run's TensorBoard events
-    overrides: list[str] = field(default_factory=list)  # changes to the run's config
-
-
-def register() -> None:
-    from hydra.core.config_store import ConfigStore
-
-    ConfigStore.instance().store(name="eval_schema", node=EvalConfig)
+from physicsrl.cli import command
 
 
 def check(cfg) -> None:
     from omegaconf import OmegaConf
 
-    check_keys(cfg, EvalConfig)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
-    if isinstance(cfg.seeds, int) and cfg.seeds < 1:
-        raise ValueError(f"seeds={cfg.seeds}: give N >= 1 held-out seeds, a list, or null")
     checkpoint(str(cfg.run))
 
 
@@ -65,20 +38,17 @@ def checkpoint(run: str) -> Path:
 
 
 def main() -> None:
-    overrides = sys.argv[1:]
-    relaunch(overrides)
-    register()
-    if not [o for o in overrides if o.startswith("-")]:
-        validate_or_exit("eval", overrides, check)
-    run_hydra("eval", evaluate, overrides)
+    command.main("eval", "physicsrl.cli.eval:evaluate", check)
 
 
 def evaluate(cfg) -> None:
+    """Every rank: rebuild the run's env from its stored config; the leader evaluates."""
     from mpi4py import MPI
     from omegaconf import OmegaConf
 
     from physicsrl import builders
     from physicsrl.checkpoint import CheckpointManager
+    from physicsrl.config import TrainConfig, typed
     from physicsrl.coordinated import Coordinator
 
     comm = MPI.COMM_WORLD
@@ -87,36 +57,32 @@ def evaluate(cfg) -> None:
     state = CheckpointManager.load(path) if leader else None
     config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
     train_cfg = OmegaConf.merge(
-        OmegaConf.create(config), OmegaConf.from_dotlist(list(cfg.overrides))
+        OmegaConf.structured(TrainConfig),
+        OmegaConf.create(config),
+        OmegaConf.from_dotlist(list(cfg.overrides)),
     )
     coordinator = Coordinator(comm)
     env = builders.make_env(train_cfg, coordinator)
     with coordinator:
         if leader:
-            evaluate_on_leader(cfg, train_cfg, env, state, path)
+            evaluate_on_leader(typed(cfg), typed(train_cfg), env, state, path)
 
 
 def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
-    import torch
-
     from physicsrl.cli.bench import format_table
-    from physicsrl.cli.train import baselines, make_dojo, task_name
+    from physicsrl.config import held_out_seeds
+    from physicsrl.evaluation import compare, write_csv
+    from physicsrl.launch import output_dir
+    from physicsrl.training import baselines, make_dojo, rounded, task_of
 
     dojo = make_dojo(train_cfg, env)
     dojo.q_network.load_state_dict(state["q_network"])
-    from physicsrl.dojo import held_out_seeds
-
     seeds = cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds
     seeds = held_out_seeds(seeds) if isinstance(seeds, int) else [int(s) for s in seeds]
     policies = {"greedy DQN": dojo.q_network}
     if cfg.baselines:
-        policies.update(baselines(env, train_cfg))
-    per_seed, means = [], []
-    for name, policy in policies.items():
-        rows = [{"policy": name, **dojo.run_episode(policy, seed)} for seed in seeds]
-        per_seed.extend(rows)
-        keys = [k for k in rows[0] if k not in ("policy", "seed")]
-        means.append({"policy": name, **{k: sum(r[k] for r in rows) / len(rows) for k in keys}})
+        policies.update(baselines(env, train_cfg, seeds))
+    per_seed, means = compare(env, policies, seeds, dojo.action_counts)
     directory = output_dir()
     write_csv(directory / "eval.csv", per_seed)
     write_csv(directory / "eval_summary.csv", means)
@@ -124,27 +90,19 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
         f"checkpoint {path} (iteration {state['counters']['iteration']}, "
         f"{state['counters']['frames']} env steps); {len(seeds)} held-out seeds, mean per episode:"
     )
-    print(
-        format_table(
-            [
-                {k: f"{v:.3f}" if isinstance(v, float) else v for k, v in row.items()}
-                for row in means
-            ]
-        )
-    )
+    print(format_table(rounded(means)))
     print(f"results: {directory / 'eval_summary.csv'} (per seed: eval.csv)")
     if cfg.curve:
         run_dir = path.parent.parent
         curve = learning_curve(run_dir, directory / "learning_curve.png", means)
         if curve is not None:
             print(f"learning curve: {curve}")
-    if cfg.gif and task_name(env) is not None:
+    if cfg.gif and task_of(env) is not None:
         succeeded = [
             r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")
         ]
         seed = int(cfg.gif_seed if cfg.gif_seed is not None else (succeeded or seeds)[0])
-        with torch.no_grad():
-            gif = episode_gif(env, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
+        gif = episode_gif(env, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
         print(
             f"episode of seed {seed}: actions {gif['actions']}, return {sum(gif['rewards']):.3f}: "
             f"{directory / 'episode.gif'}"
@@ -193,13 +151,6 @@ def learning_curve(run_dir: Path, path: Path, baselines: list[dict] | None = Non
     return path
 
 
-def write_csv(path: Path, rows: list[dict]) -> None:
-    with open(path, "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def episode_gif(env, policy, seed: int, path: Path, fps: float = 1.5) -> dict:
     """Play one greedy episode and write a GIF: the field after the reset and after each
     decision, catheter electrodes (if any), shock moments marked. Leader only, inside
@@ -212,23 +163,14 @@ def episode_gif(env, policy, seed: int, path: Path, fps: float = 1.5) -> dict:
     import numpy as np
     from matplotlib.patches import Circle
     from matplotlib.tri import Triangulation
-    from tensordict import TensorDict
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from physicsrl.evaluation import episode
 
     task = vars(env)["task"]
-    env.set_seed(seed)
-    td = env.reset()
-    frames, actions, rewards = [task.field()], [], []
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        while True:
-            td = policy(td)
-            out = env.step(td)["next"]
-            actions.append(int(td["action"]))
-            rewards.append(float(out["reward"]))
-            frames.append(task.field())
-            if bool(out["done"]):
-                break
-            td = TensorDict({k: v for k, v in out.items() if k != "reward"}, batch_size=[])
+    frames = []
+    rollout = episode(env, policy, seed, callback=lambda *_: frames.append(task.field()))
+    actions = [int(a) for a in rollout["action"].reshape(-1)]
+    rewards = rollout["next", "reward"].reshape(-1).tolist()
     points = frames[0][0]
     triangulation = Triangulation(points[:, 0], points[:, 1])
     low = min(float(f[1].min()) for f in frames)

@@ -34,6 +34,7 @@ from typing import ClassVar
 import numpy as np
 
 from physicsrl.coordinated import Coordinator, parallel
+from physicsrl.envs.baselines import atp_baselines
 from physicsrl.envs.config import integer, interval, number, positive, vector
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
@@ -156,6 +157,11 @@ class ATPTask(Task):
     n_actions: ClassVar[int] = 2
     events: ClassVar[frozenset[str]] = frozenset({"shock", "success", "failure", "steps"})
     flags: ClassVar[tuple[str, ...]] = ("success",)
+    pairs = ("catheter", "atp")
+    action_counts = {"shocks": 1}
+
+    def baselines(self, env, seeds, seed):
+        return atp_baselines(env, seeds, seed)
 
     def __init__(self, coordinator: Coordinator, config: ATPConfig, observation: Observation):
         self.config, self.observation = config, observation

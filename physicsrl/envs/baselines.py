@@ -8,18 +8,22 @@ Heat: :class:`Constant` (0 = stop at once, 1 = never stop), :class:`HeatOptimal`
 optimum of :func:`~physicsrl.envs.heat.exact_optimum`). ATP: :class:`Constant` (0 = never
 shock, 1 = always shock), :class:`RandomActions`, :class:`EveryKth`, :class:`Schedule` (shock
 at given decisions) and :func:`best_single_shock` (the best one-shock schedule over evaluation
-seeds). :func:`evaluate` runs a policy for one episode per seed.
+seeds); :func:`atp_baselines` names the ATP set.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from physicsrl.envs.heat import HeatOptimum
+from physicsrl.evaluation import mean_metrics, run_episode
+
+if TYPE_CHECKING:
+    from physicsrl.envs.heat import HeatOptimum
 
 
 class Policy:
@@ -90,24 +94,36 @@ class HeatOptimal(Policy):
         return int(step < self.optimum.best_stop[level])
 
 
-def evaluate(env, policy, seeds: Iterable[int]) -> list[float]:
-    """The return of one episode per seed (``env.set_seed(seed)`` before each). Leader only,
-    inside ``with coordinator:``."""
-    returns = []
-    for seed in seeds:
-        env.set_seed(int(seed))
-        rollout = env.rollout(env.task.max_steps + 1, policy, break_when_any_done=True)
-        returns.append(float(rollout["next", "reward"].sum()))
-    return returns
-
-
 def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | None, float]]:
     """Try a single shock at every decision (and none) over ``seeds``; return the schedule with
     the best mean return and every schedule's mean (key None: no shock). Snapshot resets make
     the repeated resets of each seed cheap."""
     seeds = list(seeds)
-    means: dict[int | None, float] = {None: float(np.mean(evaluate(env, Constant(0), seeds)))}
+
+    def mean_return(policy: Policy) -> float:
+        return mean_metrics(run_episode(env, policy, s) for s in seeds)["return"]
+
+    means: dict[int | None, float] = {None: mean_return(Constant(0))}
     for step in range(env.task.max_steps):
-        means[step] = float(np.mean(evaluate(env, Schedule([step]), seeds)))
+        means[step] = mean_return(Schedule([step]))
     best = max(means, key=means.get)
     return Schedule([] if best is None else [best]), means
+
+
+def atp_baselines(
+    env, seeds: Iterable[int], seed: int = 0, single_shock: int | None = None
+) -> dict[str, Policy]:
+    """Display name -> policy: never shock, always shock, random (p = 0.5, seeded with
+    ``seed``), every 4th decision, and the best single shock over ``seeds``
+    (:func:`best_single_shock`; ``single_shock`` fixes its decision instead)."""
+    if single_shock is None:
+        best, _ = best_single_shock(env, seeds)
+    else:
+        best = Schedule([single_shock])
+    return {
+        "never shock": Constant(0),
+        "always shock": Constant(1),
+        "random (p=0.5)": RandomActions(0.5, seed=seed),
+        "every 4th": EveryKth(4),
+        f"best single shock {sorted(best.steps)}": best,
+    }

@@ -68,6 +68,13 @@ class PhysicsEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.rng = np.random.default_rng(seed)
 
+    def rng_state(self) -> dict:
+        """The state of the episode generator (checkpoints save it for an exact resume)."""
+        return self.rng.bit_generator.state
+
+    def set_rng_state(self, state: dict) -> None:
+        self.rng.bit_generator.state = state
+
     def _observation(
         self, observation: np.ndarray, step: int, diverged: bool = False, flags=None
     ) -> dict:

@@ -58,24 +58,24 @@ def load_config(
     """
     from omegaconf import OmegaConf
 
-    root = _config_root()
     groups = {"env": env, "observation": observation, "reward": reward}
-    cfg = OmegaConf.create(
-        {g: OmegaConf.load(str(root / g / f"{n}.yaml")) for g, n in groups.items()}
-    )
+    cfg = OmegaConf.create({g: OmegaConf.load(shipped(g, n)) for g, n in groups.items()})
     cfg.seed = seed
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
 
 
-def _config_root():
-    """The folder of the shipped configs: the package ``physicsrl.conf`` when installed, the
-    repository's ``conf/`` in a checkout (where a stray ``physicsrl/conf`` folder may shadow
-    the editable mapping)."""
+def shipped(group: str, option: str) -> str:
+    """The path of the shipped YAML ``conf/<group>/<option>.yaml``: in the package
+    ``physicsrl.conf`` when installed, the repository's ``conf/`` in a checkout (where a stray
+    ``physicsrl/conf`` folder may shadow the editable mapping); FileNotFoundError if absent."""
     from importlib.resources import files
     from pathlib import Path
 
     candidates = [files("physicsrl.conf"), Path(__file__).resolve().parents[2] / "conf"]
     for root in candidates:
         if (root / "env" / "heat.yaml").is_file():
-            return root
+            path = root / group / f"{option}.yaml"
+            if not path.is_file():
+                raise FileNotFoundError(f"no config {group}/{option}.yaml in {root}")
+            return str(path)
     raise FileNotFoundError("the physicsrl configs (conf/env/heat.yaml) are not installed")

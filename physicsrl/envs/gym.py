@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from physicsrl.envs.env import PhysicsEnv
 
 
-class GymEnv(gymnasium.Env):
+class GymnasiumView(gymnasium.Env):
     """``gymnasium.Env`` adapter of ``env`` (see the module docstring)."""
 
     metadata = {"render_modes": []}

@@ -19,6 +19,7 @@ from typing import ClassVar
 import numpy as np
 
 from physicsrl.coordinated import Coordinator, parallel
+from physicsrl.envs.baselines import Constant, HeatOptimal
 from physicsrl.envs.config import integer, interval, number, positive
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
@@ -63,6 +64,33 @@ class HeatTask(Task):
     Config: ClassVar[type] = HeatConfig
     n_actions: ClassVar[int] = 2
     events: ClassVar[frozenset[str]] = frozenset({"advanced", "ended", "integral"})
+    pairs = ("quadrants", "heat_stop")
+    action_counts = {"advances": 1}
+
+    def baselines(self, env, seeds, seed):
+        """Stop at once, never stop, and the exact optimum (:func:`exact_optimum`)."""
+        return {
+            "stop at once": Constant(0),
+            "never stop": Constant(1),
+            "exact optimum": HeatOptimal(exact_optimum(env)),
+        }
+
+    @staticmethod
+    def scores(returns):
+        """The greedy return as a share of the optimum: raw, and of the gap between the best
+        trivial policy and the optimum."""
+        if "exact optimum" not in returns:
+            return []
+        greedy, optimum = returns["greedy DQN"], returns["exact optimum"]
+        trivial = max(returns["stop at once"], returns["never stop"])
+        lines = []
+        if optimum > 0:
+            lines.append(f"greedy / optimum: {100 * greedy / optimum:.1f}% of the optimal return")
+        if optimum > trivial:
+            share = 100 * (greedy - trivial) / (optimum - trivial)
+            gap = "(greedy - best trivial) / (optimum - best trivial)"
+            lines.append(f"{gap}: {share:.1f}% of the gap closed")
+        return lines
 
     def __init__(self, coordinator: Coordinator, config: HeatConfig, observation: Observation):
         self.config, self.observation = config, observation

@@ -12,6 +12,7 @@ Construct tasks on every rank in the same order (their coordinator namespaces mu
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -70,13 +71,30 @@ class Task(Coordinated):
     Subclasses set ``n_actions``, ``events`` (the event keys their transitions carry),
     ``flags`` (boolean keys copied into the tensordict), ``max_steps`` and ``observation``, and
     implement :meth:`draw`, :meth:`reset` and :meth:`step` (both ``@parallel``).
+
+    Hooks for the command line, which knows no task by name: ``pairs`` (the observation and
+    reward options that go with the task unless given), ``action_counts`` (metric name -> the
+    action counted per evaluated episode), :meth:`baselines` and :meth:`scores`.
     """
 
     Config: ClassVar[type]
     n_actions: ClassVar[int]
     events: ClassVar[frozenset[str]]
     flags: ClassVar[tuple[str, ...]] = ()
+    pairs: ClassVar[tuple[str, str] | None] = None
+    action_counts: ClassVar[dict[str, int]] = {}
     max_steps: int
+
+    def baselines(self, env, seeds: Sequence[int], seed: int) -> dict[str, Callable]:
+        """Display name -> baseline policy, to compare the agent with on ``seeds`` (leader
+        only, inside ``with coordinator:``; ``seed`` seeds random policies)."""
+        return {}
+
+    @staticmethod
+    def scores(returns: dict[str, float]) -> list[str]:
+        """Summary lines from the mean return of each policy (``"greedy DQN"`` and the
+        baselines' display names)."""
+        return []
 
     def draw(self, rng: np.random.Generator) -> tuple:
         """The random numbers of one reset, drawn on the leader (plain Python numbers)."""

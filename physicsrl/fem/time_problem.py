@@ -58,28 +58,8 @@ DEFAULT_PETSC_OPTIONS = {
 """CG + block Jacobi with ICC(0) per rank (on one rank plain ICC(0)); warm-started from u^n,
 the relative tolerance is on the preconditioned residual and ``||b||``. The Mitchell-Schaeffer
 model replaces the preconditioner by Jacobi on more than one rank
-(:data:`physicsrl.fem.monodomain.PARALLEL_PETSC_OPTIONS`; the heat equation keeps block
-Jacobi/ICC, whose 1 vs 2 rank agreement to 1e-9 is tested). Chosen by measurement on the
-Mitchell-Schaeffer benchmark (``physicsrl-bench ms``, dt = 0.03, idle 2-core machine, ms per
-solve):
-
-- one rank: ICC(0) takes 1 iteration per step on 60 x 60 cells, 2 on 250 x 250 and 3 on
-  1000 x 1000 and 2000 x 2000 (145 and 586 ms); CG + Jacobi needs 14-16 and 6-7 iterations
-  (258 and 528 ms), CG + SOR/Eisenstat 5-9. PETSc's Cholesky and LU (factorised once) were
-  slower at every size measured (60 x 60: 0.45 and 0.30 ms against <= 0.3 ms; 250 x 250:
-  8.3 ms against 2.7 ms). Plain ICC saves ~30 us per solve on 60 x 60 over block Jacobi with
-  one block. RCM or nested-dissection orderings and ICC(1) did not save an iteration.
-- two ranks: block Jacobi with ICC(0) per rank loses ICC's accuracy at the partition
-  boundary (a row of the Q1 mass matrix has off-diagonal entries summing to 5/4 of its diagonal): 12
-  iterations instead of 3 at 1000 x 1000 (205-242 ms), 8 at 2000 x 2000 (658 ms); additive
-  Schwarz with overlap 1-4 still 6 (190 ms). CG + Jacobi, whose iterations are only a
-  matrix-vector product and vector updates: 15 iterations, 140 ms, and 6-7 iterations,
-  291 ms.
-
-A looser ``ksp_rtol`` saves at most one ICC iteration and costs accuracy (rtol 1e-8: errors of
-1e-7 per step; the tests compare 1 and 2 ranks to 1e-6 after 60 steps). Starting from the
-extrapolation 2 u^n - u^{n-1} or from u^n plus the reaction's forward-Euler increment saved
-no iteration."""
+(:data:`physicsrl.fem.monodomain.PARALLEL_PETSC_OPTIONS`). Chosen by measurement: see
+``benchmarks/README.md``, "Choice of the linear solver"."""
 
 _prefixes = itertools.count()
 

@@ -76,6 +76,12 @@ class ToyChainEnv(EnvBase, Coordinated):
     def _set_seed(self, seed):
         self.rng = np.random.default_rng(seed)
 
+    def rng_state(self):
+        return self.rng.bit_generator.state
+
+    def set_rng_state(self, state):
+        self.rng.bit_generator.state = state
+
 
 def make_env(cfg, coordinator):
     """Factory for ``env.factory`` (the Hydra training runner)."""

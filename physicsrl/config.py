@@ -1,0 +1,291 @@
+"""The typed config of ``physicsrl-train`` and ``physicsrl-eval``: every default, once.
+
+Structured dataclasses that Hydra/OmegaConf compose from ``conf/train.yaml`` (the YAML only
+sets values): an unknown key or a wrong type fails while composing, an Enum field accepts only
+its members, and each ``__post_init__`` checks ranges when :func:`typed` instantiates the
+config, with a ValueError naming the full key (``optim.lr must be a finite number > 0``). The
+sections are named after the TorchRL objects they configure; the factories of
+:mod:`physicsrl.builders` and :class:`physicsrl.dojo.Dojo` take them.
+
+The task groups (``env``, ``observation``, ``reward``) are plain mappings here: their typed
+configs live beside each task in :mod:`physicsrl.envs` (``HeatConfig``, ``ATPConfig``, ...).
+
+Seeds: training batch ``i`` of a run with seed ``s`` resets the env with :func:`train_seed`
+``(s, i) = s * 1e6 + i``; evaluation uses the held-out seeds 1e9, 1e9 + 1, ...
+(:func:`held_out_seeds`), never met in training while ``s < 1000``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+from physicsrl.envs.config import integer, number, positive
+
+HELD_OUT_START = 1_000_000_000
+SEEDS_PER_RUN = 1_000_000
+
+
+def train_seed(seed: int, iteration: int) -> int:
+    """The env seed of training batch ``iteration`` of a run with ``seed``."""
+    return seed * SEEDS_PER_RUN + iteration
+
+
+def held_out_seeds(n: int) -> list[int]:
+    """The first ``n`` held-out evaluation seeds."""
+    return list(range(HELD_OUT_START, HELD_OUT_START + n))
+
+
+class Activation(enum.Enum):
+    relu = "relu"
+    tanh = "tanh"
+    elu = "elu"
+    gelu = "gelu"
+
+
+class Storage(enum.Enum):
+    tensor = "tensor"  # LazyTensorStorage (RAM)
+    memmap = "memmap"  # LazyMemmapStorage (files in the run directory)
+
+
+class LossFunction(enum.Enum):
+    l1 = "l1"
+    l2 = "l2"
+    smooth_l1 = "smooth_l1"
+
+
+class TargetKind(enum.Enum):
+    soft = "soft"  # SoftUpdate: Polyak averaging with tau after every update
+    hard = "hard"  # HardUpdate: copy every `period` updates
+
+
+def fraction(name: str, value, open_low: bool = False) -> float:
+    """``value`` in [0, 1] ((0, 1] if ``open_low``), else ValueError naming ``name``."""
+    return number(name, value, low=0.0, high=1.0, open_low=open_low)
+
+
+@dataclass
+class Network:
+    """The Q-network: ``inputs`` (env keys, concatenated) -> [Normalizer] -> MLP."""
+
+    inputs: list[str] = field(default_factory=lambda: ["observation"])
+    hidden: list[int] = field(default_factory=lambda: [64, 64])  # []: a linear model
+    activation: Activation = Activation.relu
+    normalize: bool = True  # fit (x - mean) / std on the first collected data
+
+    def __post_init__(self):
+        if not self.inputs:
+            raise ValueError("agent.network.inputs must name at least one env key")
+        for i, width in enumerate(self.hidden):
+            integer(f"agent.network.hidden[{i}]", width, 1)
+
+
+@dataclass
+class Exploration:
+    """``EGreedyModule``: epsilon annealed linearly per collected frame."""
+
+    eps_init: float = 1.0
+    eps_end: float = 0.05
+    annealing_frames: int = 800
+
+    def __post_init__(self):
+        fraction("agent.exploration.eps_init", self.eps_init)
+        fraction("agent.exploration.eps_end", self.eps_end)
+        integer("agent.exploration.annealing_frames", self.annealing_frames, 1)
+
+
+@dataclass
+class DQNAgent:
+    name: str = "dqn"
+    lr: float = 1e-3
+    network: Network = field(default_factory=Network)
+    exploration: Exploration = field(default_factory=Exploration)
+
+    def __post_init__(self):
+        positive("agent.lr", self.lr)
+
+
+@dataclass
+class Mpi:
+    ranks: int = 1  # on the command line: re-launch under mpiexec -n ranks
+
+
+@dataclass
+class CollectorConfig:
+    frames_per_batch: int = 20
+    reset_at_each_iter: bool = True  # every batch starts a fresh episode seeded by iteration
+
+    def __post_init__(self):
+        integer("collector.frames_per_batch", self.frames_per_batch, 1)
+
+
+@dataclass
+class BufferConfig:
+    size: int = 10_000
+    storage: Storage = Storage.tensor
+    batch_size: int = 64
+
+    def __post_init__(self):
+        integer("buffer.size", self.size, 1)
+        integer("buffer.batch_size", self.batch_size, 1)
+
+
+@dataclass
+class TargetConfig:
+    kind: TargetKind = TargetKind.soft
+    tau: float = 0.05
+    period: int = 100
+
+    def __post_init__(self):
+        fraction("loss.target.tau", self.tau, open_low=True)
+        integer("loss.target.period", self.period, 1)
+
+
+@dataclass
+class LossConfig:
+    gamma: float = 0.99
+    loss_function: LossFunction = LossFunction.smooth_l1
+    double_dqn: bool = True
+    n_steps: int = 1  # n-step TD targets
+    target: TargetConfig = field(default_factory=TargetConfig)
+
+    def __post_init__(self):
+        fraction("loss.gamma", self.gamma, open_low=True)
+        integer("loss.n_steps", self.n_steps, 1)
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 1e-3  # train.yaml: ${agent.lr}
+    weight_decay: float = 0.0
+    updates_per_batch: int = 8
+    learning_starts: int = 200  # frames collected before the first update
+    grad_clip: float = 10.0  # max gradient norm (0: off)
+
+    def __post_init__(self):
+        positive("optim.lr", self.lr)
+        number("optim.weight_decay", self.weight_decay, low=0.0)
+        integer("optim.updates_per_batch", self.updates_per_batch, 0)
+        integer("optim.learning_starts", self.learning_starts, 0)
+        number("optim.grad_clip", self.grad_clip, low=0.0)
+
+
+@dataclass
+class LoggerConfig:
+    tensorboard: bool = True
+    progress: bool = True
+
+
+@dataclass
+class CheckpointConfig:
+    every: int = 25  # iterations (0: only at the end and on a stop request)
+    keep: int = 3
+
+    def __post_init__(self):
+        integer("checkpoint.every", self.every, 0)
+        integer("checkpoint.keep", self.keep, 1)
+
+
+@dataclass
+class Evaluation:
+    every: int = 10  # iterations (0: only at the end)
+    seeds: list[int] = field(default_factory=lambda: held_out_seeds(10))
+    baselines: bool = True  # the summary compares with the task's baseline policies
+
+    def __post_init__(self):
+        integer("eval.every", self.every, 0)
+        if not self.seeds:
+            raise ValueError("eval.seeds must list at least one seed")
+
+
+@dataclass
+class TrainConfig:
+    mpi: Mpi = field(default_factory=Mpi)
+    env: dict[str, Any] = field(default_factory=dict)
+    observation: dict[str, Any] = field(default_factory=dict)
+    reward: dict[str, Any] = field(default_factory=dict)
+    agent: DQNAgent = field(default_factory=DQNAgent)
+    seed: int = 0
+    iterations: int = 50
+    threads: int = 1
+    resume: Any = None  # null | true | a run directory
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    buffer: BufferConfig = field(default_factory=BufferConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    eval: Evaluation = field(default_factory=Evaluation)
+
+    def __post_init__(self):
+        integer("seed", self.seed, 0)
+        integer("iterations", self.iterations, 1)
+        integer("threads", self.threads, 1)
+        if self.resume not in (None, True, False) and not isinstance(self.resume, str):
+            raise ValueError(f"resume must be true, false or a run directory, got {self.resume!r}")
+        first, last = train_seed(self.seed, 0), train_seed(self.seed, self.iterations - 1)
+        clash = [s for s in self.eval.seeds if first <= s <= last]
+        if clash:
+            raise ValueError(f"eval.seeds {clash[:3]} are also training seeds (seed * 1e6 + i)")
+
+
+@dataclass
+class EvalConfig:
+    mpi: Mpi = field(default_factory=Mpi)
+    run: str = "???"  # a run directory (its latest checkpoint) or a checkpoint file
+    seeds: Any = None  # null: the run's eval.seeds; a list of seeds; or N: the first N held out
+    baselines: bool = True
+    gif: bool = True
+    gif_seed: Any = None  # null: the first seed the greedy policy succeeds on (else the first)
+    fps: float = 1.5
+    curve: bool = True  # learning_curve.png from the run's TensorBoard events
+    overrides: list[str] = field(default_factory=list)  # changes to the run's config
+
+    def __post_init__(self):
+        positive("fps", self.fps)
+        if isinstance(self.seeds, int) and not isinstance(self.seeds, bool):
+            integer("seeds", self.seeds, 1)
+        elif self.seeds is not None and not self.seeds:
+            raise ValueError("seeds must be N >= 1, a non-empty list of seeds, or null")
+
+
+def register() -> None:
+    """Make the schemas known to Hydra (``conf/train.yaml`` and ``conf/eval.yaml`` use them)."""
+    from hydra.core.config_store import ConfigStore
+
+    store = ConfigStore.instance()
+    store.store(name="train_schema", node=TrainConfig)
+    store.store(name="eval_schema", node=EvalConfig)
+
+
+def typed(cfg) -> Any:
+    """The dataclass instance of a composed config: every key known to its schema (checked
+    here: Hydra's ``+key=value`` adds keys that ``OmegaConf.to_object`` would drop), every
+    ``__post_init__`` check run."""
+    from omegaconf import OmegaConf
+
+    check_keys(cfg, OmegaConf.get_type(cfg))
+    return OmegaConf.to_object(cfg)
+
+
+def check_keys(cfg, schema: type, prefix: str = "") -> None:
+    """ValueError naming the first key of ``cfg`` that the dataclass ``schema`` lacks."""
+    fields = {f.name for f in dataclasses.fields(schema)}
+    hints = typing.get_type_hints(schema)
+    for key in cfg:
+        if key not in fields:
+            raise ValueError(f"unknown key '{prefix}{key}' (not in {schema.__name__})")
+        if dataclasses.is_dataclass(hints[key]):
+            check_keys(cfg[key], hints[key], f"{prefix}{key}.")
+
+
+def as_dict(cfg) -> dict:
+    """A composed or typed config as plain dicts, lists and strings (Enums by name)."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.is_config(cfg):
+        cfg = OmegaConf.structured(cfg)
+    return OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)

@@ -1,0 +1,101 @@
+"""Evaluation of policies on held-out seeds: one episode runner, one table of means, one CSV.
+
+Used by the Dojo's periodic evaluation, the training summary, ``physicsrl-eval`` and
+``experiments/atp_baselines.py``. A policy is anything TorchRL's ``env.rollout`` accepts (the
+greedy Q-network, a baseline of :mod:`physicsrl.envs.baselines`); an episode is run in
+deterministic exploration mode from the env seeded with its seed. Leader only, inside
+``with coordinator:`` when the env drives a distributed simulator.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+STANDARD_KEYS = {"observation", "reward", "done", "terminated", "truncated", "step"}
+MAX_STEPS = 10_000  # a safety bound on episodes of envs that never end
+
+
+def episode_metrics(rollout: TensorDictBase, action_counts: Mapping[str, int] = ()) -> dict:
+    """Return, length, the env's scalar flags at the end (success, diverged, ...) and, for
+    each ``name: action`` of ``action_counts``, how often that action was taken (shocks)."""
+    nxt = rollout["next"]
+    metrics = {"return": float(nxt["reward"].sum()), "length": int(rollout.shape[-1])}
+    last = nxt[-1]
+    for key in sorted(last.keys()):
+        if key in STANDARD_KEYS or not isinstance(key, str):
+            continue
+        value = last.get(key)
+        if isinstance(value, torch.Tensor) and value.numel() == 1:
+            metrics[key] = float(value)
+    action = rollout["action"]
+    chosen = action.argmax(-1) if action.dtype == torch.bool else action  # one-hot or index
+    for name, value in dict(action_counts).items():
+        metrics[name] = int((chosen.reshape(-1) == value).sum())
+    return metrics
+
+
+def episode(
+    env: EnvBase, policy: Callable, seed: int, callback: Callable | None = None
+) -> TensorDictBase:
+    """The rollout (shape (steps,)) of one episode of ``policy`` from ``env`` seeded with
+    ``seed``; ``callback(env, tensordict)`` runs after the reset and after every step."""
+    env.set_seed(int(seed))
+    start = env.reset()
+    if callback is not None:
+        callback(env, start)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        return env.rollout(
+            MAX_STEPS,
+            policy,
+            callback=callback,
+            auto_reset=False,
+            tensordict=start,
+            break_when_any_done=True,
+        )
+
+
+def run_episode(
+    env: EnvBase, policy: Callable, seed: int, action_counts: Mapping[str, int] = ()
+) -> dict:
+    """The metrics of one :func:`episode`: ``{"seed", **episode_metrics}``."""
+    return {"seed": int(seed), **episode_metrics(episode(env, policy, seed), action_counts)}
+
+
+def mean_metrics(rows: Iterable[Mapping]) -> dict:
+    """The mean of each metric over ``rows`` (a metric missing from a row counts as 0; the
+    ``seed`` and ``policy`` columns are not metrics)."""
+    rows = [{k: v for k, v in row.items() if k not in ("seed", "policy")} for row in rows]
+    keys = dict.fromkeys(k for row in rows for k in row)
+    return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}
+
+
+def compare(
+    env: EnvBase,
+    policies: Mapping[str, Callable],
+    seeds: Iterable[int],
+    action_counts: Mapping[str, int] = (),
+) -> tuple[list[dict], list[dict]]:
+    """One episode of each policy per seed: the rows per seed and the mean row per policy
+    (both with a ``policy`` column holding the display name)."""
+    seeds = list(seeds)
+    per_seed, means = [], []
+    for name, policy in policies.items():
+        rows = [{"policy": name, **run_episode(env, policy, s, action_counts)} for s in seeds]
+        per_seed.extend(rows)
+        means.append({"policy": name, **mean_metrics(rows)})
+    return per_seed, means
+
+
+def write_csv(path: str | Path, rows: list[dict]) -> None:
+    """``rows`` as CSV, the columns in order of first appearance."""
+    with open(path, "w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
+        writer.writeheader()
+        writer.writerows(rows)

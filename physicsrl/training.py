@@ -1,0 +1,197 @@
+"""``train(cfg)``: a DQN training run of a composed :class:`~physicsrl.config.TrainConfig`.
+
+Every rank builds the environment (its simulator is coordinated); the leader trains the
+:class:`~physicsrl.dojo.Dojo`, compares the greedy policy with the task's baselines on the
+held-out seeds and writes ``summary.txt``/``summary.json`` in the run directory; followers
+serve the simulation. ``resume=true`` continues the newest run of this config, ``resume=<run
+dir>`` that run (in its directory). SIGINT/SIGTERM checkpoint and stop cleanly.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from mpi4py import MPI
+
+from physicsrl import builders
+from physicsrl.checkpoint import CheckpointManager, find_run
+from physicsrl.cli.bench import format_table
+from physicsrl.config import TrainConfig, as_dict, typed
+from physicsrl.coordinated import Coordinator
+from physicsrl.dojo import Dojo
+from physicsrl.envs.task import Task
+from physicsrl.evaluation import compare
+from physicsrl.launch import output_dir
+
+log = logging.getLogger("physicsrl.train")
+
+
+def train(cfg) -> None:
+    """Every rank: build the env; the leader trains and reports, followers serve."""
+    config: TrainConfig = typed(cfg)
+    comm = MPI.COMM_WORLD
+    leader = comm.rank == 0
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    np.random.seed(config.seed)
+    random.seed(config.seed)
+    run_dir = output_dir()
+
+    # where to continue from: decided by the leader, known to all
+    resume_dir, error = None, None
+    if leader and config.resume not in (None, False):
+        try:
+            resume_dir = find_run(str(config.resume), run_dir.parent)
+        except FileNotFoundError as problem:
+            error = str(problem)
+    resume_dir, error = comm.bcast((resume_dir, error), root=0)
+    if error:
+        if leader:
+            print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2)
+    if not leader:  # the leader checkpoints and releases the followers on a signal
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+    coordinator = Coordinator(comm)
+    env = builders.make_env(cfg, coordinator)  # collective: every rank, same order
+    stopped = None
+    with coordinator:
+        if leader:
+            stopped = train_on_leader(config, env, coordinator, run_dir, resume_dir)
+    if leader and stopped:
+        raise SystemExit(130 if "SIGINT" in stopped else 143 if "SIGTERM" in stopped else 1)
+
+
+def task_of(env) -> Task | None:
+    """The :class:`~physicsrl.envs.task.Task` behind ``env``, if it has one (its hooks name the
+    baselines, action counts and score lines)."""
+    task = vars(env).get("task")  # not getattr: EnvBase.__getattr__ searches further
+    return task if isinstance(task, Task) else None
+
+
+def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None = None) -> Dojo:
+    """The Dojo of ``config`` for ``env`` (leader only)."""
+    q_network = builders.make_q_network(env, config.agent.network)
+    loss = builders.make_loss(q_network, env, config.loss)
+    task = task_of(env)
+    return Dojo(
+        q_network,
+        env,
+        optimizer=builders.make_optimizer(loss, config.optim),
+        loss=loss,
+        target_updater=builders.make_target_updater(loss, config.loss.target),
+        replay_buffer=builders.make_buffer(
+            config.buffer, None if log_dir is None else log_dir / "buffer"
+        ),
+        exploration=builders.make_exploration(q_network, env, config.agent.exploration),
+        frames_per_batch=config.collector.frames_per_batch,
+        reset_at_each_iter=config.collector.reset_at_each_iter,
+        updates_per_batch=config.optim.updates_per_batch,
+        learning_starts=config.optim.learning_starts,
+        grad_clip=config.optim.grad_clip or None,
+        n_steps=config.loss.n_steps,
+        seed=config.seed,
+        eval_every=config.eval.every,
+        eval_seeds=config.eval.seeds,
+        log_dir=log_dir,
+        tensorboard=config.logger.tensorboard,
+        checkpoint_every=config.checkpoint.every,
+        keep_checkpoints=config.checkpoint.keep,
+        checkpoint_extra={"config": as_dict(config)},
+        coordinator=coordinator,
+        progress=config.logger.progress,
+        action_counts=task.action_counts if task else {},
+    )
+
+
+def baselines(env, config: TrainConfig, seeds) -> dict:
+    """Display name -> policy: the task's baseline policies (none for envs without a task)."""
+    task = task_of(env)
+    return task.baselines(env, list(seeds), config.seed) if task else {}
+
+
+def train_on_leader(
+    config: TrainConfig, env, coordinator, run_dir: Path, resume_dir: Path | None
+) -> str | None:
+    """Train, print the summary, write ``summary.json``; return the stop reason, if any."""
+    log_dir = resume_dir or run_dir
+    if log_dir != run_dir:  # a resumed run keeps writing its own log too
+        handler = logging.FileHandler(log_dir / "train.log")
+        handler.setFormatter(
+            logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
+        )
+        logging.getLogger().addHandler(handler)
+    dojo = make_dojo(config, env, coordinator, log_dir)
+    if resume_dir is not None:
+        state = dojo.load_checkpoint(CheckpointManager(resume_dir / "checkpoints").latest())
+        warn_differences(state.get("extra", {}).get("config", {}), dojo.checkpoint_extra["config"])
+    log.info(
+        "run directory %s; %d ranks; training to iteration %d",
+        log_dir,
+        coordinator.size,
+        config.iterations,
+    )
+    started = time.perf_counter()
+    summary = dojo.train(config.iterations)
+    summary["wall_s"] = time.perf_counter() - started
+    table = []
+    if dojo.history:  # a stop request skips the baselines: it should end quickly
+        greedy = {k: v for k, v in dojo.history[-1].items() if k not in ("iteration", "frames")}
+        table = [{"policy": "greedy DQN", **greedy}]
+        if config.eval.baselines and not dojo.stopped:
+            policies = baselines(env, config, config.eval.seeds)
+            table += compare(env, policies, config.eval.seeds, dojo.action_counts)[1]
+    report = format_summary(summary, table, log_dir, task_of(env))
+    print(report, flush=True)
+    (log_dir / "summary.txt").write_text(report + "\n")
+    (log_dir / "summary.json").write_text(
+        json.dumps({"summary": summary, "table": table}, indent=2, default=str)
+    )
+    return dojo.stopped
+
+
+def warn_differences(old: dict, new: dict, prefix: str = "") -> None:
+    """Log the settings of a resumed run that differ from its checkpoint's."""
+    ignored = {"resume", "iterations", "mpi", "logger"}
+    for key in sorted(set(old) | set(new)):
+        name = f"{prefix}{key}"
+        if not prefix and key in ignored:
+            continue
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            warn_differences(a, b, f"{name}.")
+        elif a != b:
+            log.warning("resumed with %s = %r (the checkpoint's run had %r)", name, b, a)
+
+
+def rounded(rows: list[dict]) -> list[dict]:
+    """``rows`` with floats to 3 decimals, for :func:`~physicsrl.cli.bench.format_table`."""
+    return [{k: f"{v:.3f}" if isinstance(v, float) else v for k, v in row.items()} for row in rows]
+
+
+def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task | None) -> str:
+    times = ", ".join(f"{k} {v:.1f}s" for k, v in summary["time_s"].items())
+    lines = [
+        f"trained {summary['iteration']} iterations, {summary['frames']} env steps, "
+        f"{summary['episodes']} episodes, {summary['updates']} updates in {summary['wall_s']:.1f}s "
+        f"({summary['env_steps_per_s']:.1f} env steps/s while simulating)",
+        f"time: {times}",
+    ]
+    if summary.get("stopped"):
+        lines.append(f"stopped early: {summary['stopped']} (resume with resume={log_dir})")
+    if table:
+        lines.append("held-out seeds, mean per episode:")
+        lines.append(format_table(rounded(table)))
+        if task is not None:
+            lines.extend(task.scores({row["policy"]: row["return"] for row in table}))
+    lines.append(f"run directory: {log_dir}")
+    return "\n".join(lines)
