@@ -50,7 +50,7 @@ class GymnasiumView(gymnasium.Env):
         )
 
 
-class GymVectorEnv(gymnasium.vector.VectorEnv):
+class GymnasiumVectorView(gymnasium.vector.VectorEnv):
     """``gymnasium.vector.VectorEnv`` adapter of the N environments of a
     :class:`~physicsrl.envs.groups.GroupedEnv` (N simulator groups; the learner's rank).
 

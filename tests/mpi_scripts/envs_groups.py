@@ -15,7 +15,7 @@ from torchrl.envs.utils import check_env_specs
 from physicsrl.coordinated import Coordinator, abort_on_error
 from physicsrl.envs import load_config, make_env
 from physicsrl.envs.groups import environments, member_seed, run_episodes
-from physicsrl.envs.gym import GymVectorEnv
+from physicsrl.envs.gym import GymnasiumVectorView
 
 SEED, STEPS, EVAL_SEEDS = 7, 14, [100, 101, 102]
 
@@ -57,7 +57,7 @@ with abort_on_error():
             )
             vector_rewards = []
             if n > 1:
-                vector = GymVectorEnv(env)
+                vector = GymnasiumVectorView(env)
                 _, info = vector.reset(seed=SEED)
                 for _ in range(STEPS):
                     _, reward, _, _, info = vector.step(info["step"] % 3 != 2)
