@@ -348,16 +348,21 @@ def test_eval_command_tables_a_trained_run(reference, tmp_path):
         ("eval", "fps=0", "fps must be a finite number > 0, got 0.0"),
         ("eval", "seeds=[]", "seeds must be N >= 1, a non-empty list of seeds, or null"),
         ("eval", "seeds=0", "seeds must be an integer >= 1, got 0"),
+        ("eval", "run=/etc/passwd", "run=/etc/passwd is not a checkpoint file"),
     ],
 )
-def test_bad_values_are_refused_by_the_typed_config(capsys, command, override, message):
-    """The range checks of physicsrl/config.py, as every command runs them before any work:
-    exit status 2 and one line naming the key."""
+def test_bad_values_are_refused_by_the_typed_config(capsys, tmp_path, command, override, message):
+    """The range checks of physicsrl/config.py and the commands' own checks, as they run them
+    before any work: exit status 2 and one line naming the key."""
+    from physicsrl.cli import eval as evaluate
+    from physicsrl.cli import train
     from physicsrl.cli.command import validate_or_exit
 
-    overrides = [override] if command == "train" else [override, f"run={TOY}"]
+    check = {"train": train.check_task, "eval": evaluate.check}[command]
+    torch.save({}, tmp_path / "ckpt.pt")
+    overrides = [override] if command == "train" else [f"run={tmp_path / 'ckpt.pt'}", override]
     with pytest.raises(SystemExit) as exit_:
-        validate_or_exit(command, overrides, check=lambda cfg: None)
+        validate_or_exit(command, overrides, check)
     assert exit_.value.code == 2
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and message in lines[0], lines

@@ -26,10 +26,14 @@ def check(cfg) -> None:
 
 def checkpoint(run: str) -> Path:
     """The checkpoint file of ``run`` (a file, or the latest in a run directory)."""
+    import zipfile
+
     from physicsrl.checkpoint import CheckpointManager
 
     path = Path(run).expanduser()
     if path.is_file():
+        if not zipfile.is_zipfile(path):  # torch.save writes a zip archive
+            raise ValueError(f"run={run} is not a checkpoint file (torch.save's zip format)")
         return path
     latest = CheckpointManager(path / "checkpoints").latest()
     if latest is None:
