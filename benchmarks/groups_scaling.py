@@ -33,7 +33,7 @@ def main() -> None:
     rows = []
     for n, p in LAYOUTS:
         record = bench_record(
-            "groups", f"mpi.ranks={n * p}", f"env_ranks={p}", f"decisions={args.decisions}"
+            "groups", f"mpi.ranks={n * p}", f"mpi.ranks_per_env={p}", f"decisions={args.decisions}"
         )
         rows += record["rows"]
     for n in NO_OP_ENVS:

@@ -61,7 +61,7 @@ def test_layout_errors(per_env, world, text):
         return
     with pytest.raises(ValueError, match=text) as error:
         check_layout(per_env, world)
-    assert f"env.ranks={per_env}" in str(error.value)
+    assert f"mpi.ranks_per_env={per_env}" in str(error.value)
     assert "\n" not in str(error.value)
 
 

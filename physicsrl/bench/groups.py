@@ -1,6 +1,6 @@
 """``physicsrl-bench groups``: experience from N simulator groups of P ranks (issue 12).
 
-Runs on the job's W ranks with ``env.ranks=P`` (N = W / P environments, see
+Runs on the job's W ranks with ``mpi.ranks_per_env=P`` (N = W / P environments, see
 :mod:`physicsrl.envs.groups`) and measures, on the learner:
 
 - ``atp``: the ATP task (default: the report's 60 x 60 grid) as one batched env: the reset of
@@ -74,7 +74,7 @@ def _timed_steps(env: EnvBase, steps: int, shock_every: int) -> tuple[float, flo
 
 def run(cfg) -> list[dict]:
     world = MPI.COMM_WORLD
-    P = int(cfg.env_ranks)
+    P = int(cfg.mpi.ranks_per_env)
     rows = []
     if cfg.atp:
         rows.append(_atp_row(cfg, world, P))

@@ -45,7 +45,7 @@ from torchrl.envs import EnvBase
 
 from physicsrl.coordinated import Coordinator
 
-__all__ = ["GroupedEnv", "Layout", "environments", "member_seed", "serve"]
+__all__ = ["GroupedEnv", "Layout", "environments", "member_seed", "serve", "spread_episodes"]
 
 SEED_STRIDE = 1 << 40
 _REQUEST, _REPLY = 31, 32
@@ -87,11 +87,13 @@ def check_layout(ranks_per_env: int, world_size: int) -> None:
     """ValueError in one line unless ``ranks_per_env`` is a divisor of ``world_size``."""
     if not (isinstance(ranks_per_env, int) and 1 <= ranks_per_env <= world_size):
         raise ValueError(
-            f"env.ranks={ranks_per_env!r} must be an integer from 1 to the job's {world_size} ranks"
+            f"mpi.ranks_per_env={ranks_per_env!r} must be an integer from 1 to the job's "
+            f"{world_size} ranks"
         )
     if world_size % ranks_per_env:
         raise ValueError(
-            f"env.ranks={ranks_per_env} does not divide the job's {world_size} ranks into groups"
+            f"mpi.ranks_per_env={ranks_per_env} does not divide the job's {world_size} ranks "
+            "into groups"
         )
 
 
@@ -194,8 +196,17 @@ class GroupedEnv(EnvBase):
 
     @property
     def local_env(self) -> EnvBase:
-        """Group 0's environment (its task, for example, for plots and hooks)."""
+        """Group 0's environment (on the learner's rank: plots, fields)."""
         return self.members[0].env
+
+    @property
+    def task(self):
+        """Group 0's task: its settings and hooks (baselines, scores) are every group's."""
+        return self.local_env.task
+
+    @property
+    def reward_fn(self):
+        return self.local_env.reward_fn
 
     def _all(self, command: int, arguments: Sequence, indices: Sequence[int]) -> list:
         """Send ``command`` with ``arguments[k]`` to member ``indices[k]``, remote ones first,
@@ -271,7 +282,7 @@ class GroupedEnv(EnvBase):
             member.send(_CLOSE, status)
 
 
-def run_episodes(
+def spread_episodes(
     env: GroupedEnv, policy: Callable, seeds: Sequence[int], max_steps: int
 ) -> list[TensorDict]:
     """One episode per seed, spread over the members (K seeds take about K / N episode

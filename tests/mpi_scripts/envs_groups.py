@@ -1,7 +1,7 @@
 """``envs_groups.py P OUT``: the heat task (small) as N = ranks / P environments of P ranks.
 
 On the learner: a batched rollout with automatic partial resets, the episodes of three seeds
-spread over the groups (``run_episodes``) and the specs check; then, on the learner alone
+spread over the groups (``spread_episodes``) and the specs check; then, on the learner alone
 (``COMM_SELF``), the serial reference: environment i built alone and seeded with
 ``member_seed(seed, i)``, and each evaluation seed run alone. Writes everything to OUT (JSON)."""
 
@@ -14,7 +14,7 @@ from torchrl.envs.utils import check_env_specs
 
 from physicsrl.coordinated import Coordinator, abort_on_error
 from physicsrl.envs import load_config, make_env
-from physicsrl.envs.groups import environments, member_seed, run_episodes
+from physicsrl.envs.groups import environments, member_seed, spread_episodes
 from physicsrl.envs.gym import GymnasiumVectorView
 
 SEED, STEPS, EVAL_SEEDS = 7, 14, [100, 101, 102]
@@ -53,7 +53,7 @@ with abort_on_error():
             with torch.no_grad():
                 batched = columns(env.rollout(STEPS, policy, break_when_any_done=False))
             evaluated = (
-                [episode(r) for r in run_episodes(env, policy, EVAL_SEEDS, 10)] if n > 1 else []
+                [episode(r) for r in spread_episodes(env, policy, EVAL_SEEDS, 10)] if n > 1 else []
             )
             vector_rewards = []
             if n > 1:
