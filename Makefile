@@ -4,10 +4,10 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: help setup train test bench lint clean
+.PHONY: help setup train test test-slurm bench lint clean
 
 help:  ## list the targets
-	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-6s %s\n", $$1, $$2}'
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,13 @@ train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 
 test: setup  ## run the whole test suite (unit and MPI tests)
 	$(BIN)/python -m pytest
+
+SLURM := tests/slurm/local_slurm.sh
+test-slurm: setup  ## the Slurm launcher on a local single-node Slurm (installed where possible, else skipped)
+	@if $(SLURM) install && $(SLURM) start; then \
+	  SLURM_CONF=/tmp/physicsrl-slurm/slurm.conf $(BIN)/python -m pytest -m slurm tests/test_slurm.py; \
+	  status=$$?; $(SLURM) stop; exit $$status; \
+	else echo "test-slurm: skipped, no local Slurm here (the line above says why)"; fi
 
 bench: setup  ## run the benchmarks, beside their baselines, into benchmarks/results/
 	$(BIN)/python benchmarks/ping_scaling.py

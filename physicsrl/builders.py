@@ -153,7 +153,7 @@ def make_q_network(env: EnvBase, network: Network | None = None):
             f"{sorted(env.observation_spec.keys())}"
         )
     activation = ACTIVATIONS[network.activation.value]
-    spec = env.action_spec
+    spec = env.action_spec_unbatched  # one environment's (batched envs: N of them)
     n_actions = int(spec.space.n)
     n_obs = sum(int(env.observation_spec[key].shape[-1]) for key in inputs)
     layers: list[nn.Module] = []
@@ -182,7 +182,7 @@ def make_exploration(
     from ``eps_init`` to ``eps_end`` over ``annealing_frames`` (call ``[-1].step(n)``)."""
     exploration = exploration or Exploration()
     greedy = EGreedyModule(
-        spec=env.action_spec,
+        spec=env.action_spec_unbatched,
         eps_init=exploration.eps_init,
         eps_end=exploration.eps_end,
         annealing_num_steps=exploration.annealing_frames,
@@ -198,7 +198,7 @@ def make_loss(q_network: TensorDictModule, env: EnvBase, loss: LossConfig | None
         loss_function=loss.loss_function.value,
         delay_value=True,  # a target network (double DQN needs it too)
         double_dqn=loss.double_dqn,
-        action_space=env.action_spec,
+        action_space=env.action_spec_unbatched,
     )
     module.make_value_estimator(gamma=loss.gamma)
     return module

@@ -111,6 +111,10 @@ class DQNAgent:
 @dataclass
 class Mpi:
     ranks: int = 1  # on the command line: re-launch under mpiexec -n ranks
+    ranks_per_env: int = 1  # P: the job's W ranks run W / P environments of P ranks each
+
+    def __post_init__(self):
+        integer("mpi.ranks_per_env", self.ranks_per_env, 1)
 
 
 @dataclass

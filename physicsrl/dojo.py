@@ -50,7 +50,7 @@ from physicsrl.config import (
     OptimConfig,
     train_seed,
 )
-from physicsrl.evaluation import mean_metrics, run_episode, write_csv
+from physicsrl.evaluation import mean_metrics, run_episodes, write_csv
 
 __all__ = ["Dojo", "Counters", "n_step_transitions"]
 
@@ -197,7 +197,7 @@ class Dojo:
         self.writer = None
         self._stop_reason: str | None = None
         self._saved_iteration = -1  # the iteration of the last checkpoint written or loaded
-        self._partial_return = 0.0  # of the episode running across batches
+        self._partial_returns: list[float] = []  # per env, of episodes running across batches
         self._pending_rng: dict | None = None
         self._collector: Collector | None = None
         self._coordination_s = 0.0
@@ -281,19 +281,21 @@ class Dojo:
             self.env.set_seed(train_seed(self.seed, self.counters.iteration))
 
     def _record_batch(self, data: TensorDictBase) -> list[float]:
-        """Count frames and episodes; return the returns of the episodes finished here."""
-        n = data.numel()
-        self.counters.frames += n
-        rewards = data["next", "reward"].reshape(n).tolist()
-        dones = data["next", "done"].reshape(n).tolist()
-        if self.reset_at_each_iter:
-            self._partial_return = 0.0
+        """Count frames and episodes; return the returns of the episodes finished here. The
+        batch is (time,) for one environment and (environments, time) for many."""
+        self.counters.frames += data.numel()
+        rows = data.reshape(-1, data.shape[-1])
+        rewards = rows["next", "reward"].reshape(rows.shape).tolist()
+        dones = rows["next", "done"].reshape(rows.shape).tolist()
+        if self.reset_at_each_iter or len(self._partial_returns) != len(rewards):
+            self._partial_returns = [0.0] * len(rewards)
         returns = []
-        for reward, done in zip(rewards, dones, strict=True):
-            self._partial_return += reward
-            if done:
-                returns.append(self._partial_return)
-                self._partial_return = 0.0
+        for env, (env_rewards, env_dones) in enumerate(zip(rewards, dones, strict=True)):
+            for reward, done in zip(env_rewards, env_dones, strict=True):
+                self._partial_returns[env] += reward
+                if done:
+                    returns.append(self._partial_returns[env])
+                    self._partial_returns[env] = 0.0
         self.counters.episodes += len(returns)
         return returns
 
@@ -333,7 +335,7 @@ class Dojo:
         started = time.perf_counter()
         policy = policy or self.q_network
         metrics = mean_metrics(
-            run_episode(self.env, policy, s, self.action_counts) for s in seeds or self.eval_seeds
+            run_episodes(self.env, policy, seeds or self.eval_seeds, self.action_counts)
         )
         self._add_time("evaluation", time.perf_counter() - started)
         if self._collector is not None and not self.reset_at_each_iter:

@@ -18,6 +18,8 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from physicsrl.envs.groups import GroupedEnv, spread_episodes
+
 STANDARD_KEYS = {"observation", "reward", "done", "terminated", "truncated", "step"}
 MAX_STEPS = 10_000  # a safety bound on episodes of envs that never end
 
@@ -68,6 +70,23 @@ def run_episode(
     return {"seed": int(seed), **episode_metrics(episode(env, policy, seed), action_counts)}
 
 
+def run_episodes(
+    env: EnvBase, policy: Callable, seeds: Iterable[int], action_counts: Mapping[str, int] = ()
+) -> list[dict]:
+    """:func:`run_episode` for each seed; the environments of a
+    :class:`~physicsrl.envs.groups.GroupedEnv` share the seeds (K seeds on N environments take
+    about K / N episode times) and give the same rows."""
+    seeds = [int(s) for s in seeds]
+    if not isinstance(env, GroupedEnv):
+        return [run_episode(env, policy, s, action_counts) for s in seeds]
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollouts = spread_episodes(env, policy, seeds, MAX_STEPS)
+    return [
+        {"seed": s, **episode_metrics(r, action_counts)}
+        for s, r in zip(seeds, rollouts, strict=True)
+    ]
+
+
 def mean_metrics(rows: Iterable[Mapping]) -> dict:
     """The mean of each metric over ``rows`` (a metric missing from a row counts as 0; the
     ``seed`` and ``policy`` columns are not metrics)."""
@@ -87,7 +106,7 @@ def compare(
     seeds = list(seeds)
     per_seed, means = [], []
     for name, policy in policies.items():
-        rows = [{"policy": name, **run_episode(env, policy, s, action_counts)} for s in seeds]
+        rows = [{"policy": name, **row} for row in run_episodes(env, policy, seeds, action_counts)]
         per_seed.extend(rows)
         means.append({"policy": name, **mean_metrics(rows)})
     return per_seed, means

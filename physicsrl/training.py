@@ -25,8 +25,8 @@ from physicsrl import builders
 from physicsrl.checkpoint import CheckpointManager, find_run
 from physicsrl.cli.bench import format_table
 from physicsrl.config import TrainConfig, as_dict, typed
-from physicsrl.coordinated import Coordinator
 from physicsrl.dojo import Dojo
+from physicsrl.envs.groups import GroupedEnv, environments
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
 from physicsrl.launch import output_dir
@@ -61,20 +61,21 @@ def train(cfg) -> None:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
-    coordinator = Coordinator(comm)
-    env = builders.make_env(cfg, coordinator)  # collective: every rank, same order
     stopped = None
-    with coordinator:
-        if leader:
-            stopped = train_on_leader(config, env, coordinator, run_dir, resume_dir)
+    make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
+    with environments(make_env, config.mpi.ranks_per_env, seed=config.seed) as env:
+        if env is not None:  # world rank 0: the learner
+            stopped = train_on_leader(config, env, run_dir, resume_dir)
     if leader and stopped:
         raise SystemExit(130 if "SIGINT" in stopped else 143 if "SIGTERM" in stopped else 1)
 
 
 def task_of(env) -> Task | None:
-    """The :class:`~physicsrl.envs.task.Task` behind ``env``, if it has one (its hooks name the
-    baselines, action counts and score lines)."""
-    task = vars(env).get("task")  # not getattr: EnvBase.__getattr__ searches further
+    """The :class:`~physicsrl.envs.task.Task` behind ``env`` (group 0's, for many
+    environments), if it has one (its hooks name the baselines, action counts and score
+    lines)."""
+    # not getattr: EnvBase.__getattr__ searches further (a GroupedEnv has group 0's task)
+    task = env.task if isinstance(env, GroupedEnv) else vars(env).get("task")
     return task if isinstance(task, Task) else None
 
 
@@ -119,10 +120,21 @@ def baselines(env, config: TrainConfig, seeds) -> dict:
     return task.baselines(env, list(seeds), config.seed) if task else {}
 
 
-def train_on_leader(
-    config: TrainConfig, env, coordinator, run_dir: Path, resume_dir: Path | None
-) -> str | None:
+def train_on_leader(config: TrainConfig, env, run_dir: Path, resume_dir: Path | None) -> str | None:
     """Train, print the summary, write ``summary.json``; return the stop reason, if any."""
+    task = task_of(env)
+    coordinator = task.coordinator if task else None  # group 0's: its time is logged
+    ranks, per_env = MPI.COMM_WORLD.size, config.mpi.ranks_per_env
+    log.info(
+        "%d environment%s of %d rank%s (%d ranks); run directory %s; training to iteration %d",
+        ranks // per_env,
+        "s" if ranks // per_env > 1 else "",
+        per_env,
+        "s" if per_env > 1 else "",
+        ranks,
+        resume_dir or run_dir,
+        config.iterations,
+    )
     log_dir = resume_dir or run_dir
     if log_dir != run_dir:  # a resumed run keeps writing its own log too
         handler = logging.FileHandler(log_dir / "train.log")
@@ -133,13 +145,9 @@ def train_on_leader(
     dojo = make_dojo(config, env, coordinator, log_dir)
     if resume_dir is not None:
         state = dojo.load_checkpoint(CheckpointManager(resume_dir / "checkpoints").latest())
-        warn_differences(state.get("extra", {}).get("config", {}), dojo.checkpoint_extra["config"])
-    log.info(
-        "run directory %s; %d ranks; training to iteration %d",
-        log_dir,
-        coordinator.size,
-        config.iterations,
-    )
+        old = state.get("extra", {}).get("config", {})
+        check_environments(old.get("mpi", {}), ranks // per_env)
+        warn_differences(old, dojo.checkpoint_extra["config"])
     started = time.perf_counter()
     summary = dojo.train(config.iterations)
     summary["wall_s"] = time.perf_counter() - started
@@ -157,6 +165,19 @@ def train_on_leader(
         json.dumps({"summary": summary, "table": table}, indent=2, default=str)
     )
     return dojo.stopped
+
+
+def check_environments(mpi: dict, n_envs: int) -> None:
+    """Exit with one line unless the checkpoint's run had ``n_envs`` environments: their
+    episode generators are part of the exact resume."""
+    before = mpi.get("ranks", 1) // mpi.get("ranks_per_env", 1)
+    if before != n_envs:
+        print(
+            f"error: the checkpoint's run had {before} environment(s), this job has {n_envs} "
+            "(mpi.ranks / mpi.ranks_per_env): resume with the same number",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
 
 
 def warn_differences(old: dict, new: dict, prefix: str = "") -> None:

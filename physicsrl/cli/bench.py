@@ -22,6 +22,7 @@ BENCHMARKS = {
     "ping": "cost of one parallel call (report section 3.5)",
     "ms": "monodomain Mitchell-Schaeffer steps (report section 4.3.3)",
     "env": "ATP environment throughput and TorchRL overhead",
+    "groups": "N simulator groups x P ranks: transitions per second, batched-env cost",
 }
 
 USAGE = "usage: physicsrl-bench NAME [key=value ...] [mpi.ranks=N] [--help | --cfg job]\n\n" + (

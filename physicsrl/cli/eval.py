@@ -19,6 +19,10 @@ from physicsrl.cli import command
 def check(cfg) -> None:
     from omegaconf import OmegaConf
 
+    from physicsrl.envs.groups import check_layout
+    from physicsrl.launch import launched_size
+
+    check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
     checkpoint(str(cfg.run))
@@ -53,7 +57,7 @@ def evaluate(cfg) -> None:
     from physicsrl import builders
     from physicsrl.checkpoint import CheckpointManager
     from physicsrl.config import TrainConfig, typed
-    from physicsrl.coordinated import Coordinator
+    from physicsrl.envs.groups import environments
 
     comm = MPI.COMM_WORLD
     leader = comm.rank == 0
@@ -65,16 +69,17 @@ def evaluate(cfg) -> None:
         OmegaConf.create(config),
         OmegaConf.from_dotlist(list(cfg.overrides)),
     )
-    coordinator = Coordinator(comm)
-    env = builders.make_env(train_cfg, coordinator)
-    with coordinator:
-        if leader:
-            evaluate_on_leader(typed(cfg), typed(train_cfg), env, state, path)
+    eval_cfg = typed(cfg)
+    make_env = lambda coordinator: builders.make_env(train_cfg, coordinator)  # noqa: E731
+    with environments(make_env, eval_cfg.mpi.ranks_per_env) as env:
+        if env is not None:  # the seeds are spread over the job's environments
+            evaluate_on_leader(eval_cfg, typed(train_cfg), env, state, path)
 
 
 def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
     from physicsrl.cli.bench import format_table
     from physicsrl.config import held_out_seeds
+    from physicsrl.envs.groups import GroupedEnv
     from physicsrl.evaluation import compare, write_csv
     from physicsrl.launch import output_dir
     from physicsrl.training import baselines, make_dojo, rounded, task_of
@@ -106,7 +111,8 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
             r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")
         ]
         seed = int(cfg.gif_seed if cfg.gif_seed is not None else (succeeded or seeds)[0])
-        gif = episode_gif(env, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
+        single = env.local_env if isinstance(env, GroupedEnv) else env
+        gif = episode_gif(single, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
         print(
             f"episode of seed {seed}: actions {gif['actions']}, return {sum(gif['rewards']):.3f}: "
             f"{directory / 'episode.gif'}"

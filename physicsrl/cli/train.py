@@ -15,8 +15,13 @@ from physicsrl.cli import command
 
 
 def check_task(cfg) -> None:
-    """The task groups as :func:`physicsrl.envs.make_env` will read them (nothing is built);
-    an env from ``env.factory`` checks its own settings."""
+    """The layout of environments over the job's ranks, and the task groups as
+    :func:`physicsrl.envs.make_env` will read them (nothing is built); an env from
+    ``env.factory`` checks its own settings."""
+    from physicsrl.envs.groups import check_layout
+    from physicsrl.launch import launched_size
+
+    check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
     if cfg.env.get("factory"):
         return
     from physicsrl.envs import OBSERVATIONS, REWARDS, TASKS

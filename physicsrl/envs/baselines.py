@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from physicsrl.evaluation import mean_metrics, run_episode
+from physicsrl.evaluation import mean_metrics, run_episodes
 
 if TYPE_CHECKING:
     from physicsrl.envs.heat import HeatOptimum
@@ -101,7 +101,7 @@ def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | N
     seeds = list(seeds)
 
     def mean_return(policy: Policy) -> float:
-        return mean_metrics(run_episode(env, policy, s) for s in seeds)["return"]
+        return mean_metrics(run_episodes(env, policy, seeds))["return"]
 
     means: dict[int | None, float] = {None: mean_return(Constant(0))}
     for step in range(env.task.max_steps):

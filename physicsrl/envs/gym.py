@@ -48,3 +48,62 @@ class GymnasiumView(gymnasium.Env):
             bool(result["truncated"].item()),
             info,
         )
+
+
+class GymnasiumVectorView(gymnasium.vector.VectorEnv):
+    """``gymnasium.vector.VectorEnv`` adapter of the N environments of a
+    :class:`~physicsrl.envs.groups.GroupedEnv` (N simulator groups; the learner's rank).
+
+    Spaces: the single env's, batched (``(N, size)`` observations, ``MultiDiscrete`` actions).
+    Autoreset ``SAME_STEP``: an environment whose episode ends restarts within the same
+    ``step``; the returned observation is its first one, its last is ``infos["final_obs"][i]``
+    (``infos["_final_obs"]`` marks which). ``infos`` holds ``step``, ``diverged`` and the
+    task's flags as arrays. ``reset(seed=s)`` seeds environment i with
+    ``member_seed(s, i)``; ``seed=[s0, s1, ...]`` seeds each.
+    """
+
+    metadata = {"render_modes": [], "autoreset_mode": gymnasium.vector.AutoresetMode.SAME_STEP}
+
+    def __init__(self, env):
+        self.env = env
+        self.num_envs = env.batch_size[0]
+        task = env.local_env.task
+        self._info_keys = ("step", "diverged", *task.flags)
+        self.single_observation_space = gymnasium.spaces.Box(
+            -np.inf, np.inf, (task.observation.size,), np.float32
+        )
+        self.single_action_space = gymnasium.spaces.Discrete(task.n_actions)
+        batch = gymnasium.vector.utils.batch_space
+        self.observation_space = batch(self.single_observation_space, self.num_envs)
+        self.action_space = batch(self.single_action_space, self.num_envs)
+
+    def _stack(self, rows: list[dict]) -> tuple[np.ndarray, dict]:
+        observations = np.stack([row["observation"] for row in rows]).astype(np.float32)
+        infos = {key: np.array([row[key].item() for row in rows]) for key in self._info_keys}
+        return observations, infos
+
+    def reset(self, *, seed=None, options: dict | None = None):
+        if isinstance(seed, int):
+            self.env.set_seed(seed)
+        elif seed is not None:
+            self.env.seed_each(list(seed))
+        rows = self.env.reset_some(list(range(self.num_envs)))
+        return self._stack([rows[i] for i in range(self.num_envs)])
+
+    def step(self, actions):
+        rows = self.env.step_some({i: int(a) for i, a in enumerate(actions)})
+        rows = [rows[i] for i in range(self.num_envs)]
+        rewards = np.array([row["reward"].item() for row in rows], dtype=np.float64)
+        terminated = np.array([bool(row["terminated"].item()) for row in rows])
+        truncated = np.array([bool(row["truncated"].item()) for row in rows])
+        final = self._stack(rows)[0]
+        ended = np.flatnonzero(terminated | truncated).tolist()
+        for i, first in self.env.reset_some(ended).items():
+            rows[i] = first
+        observations, infos = self._stack(rows)
+        if ended:
+            infos["final_obs"] = np.array(
+                [final[i] if i in ended else None for i in range(self.num_envs)], dtype=object
+            )
+            infos["_final_obs"] = np.isin(np.arange(self.num_envs), ended)
+        return observations, rewards, terminated, truncated, infos

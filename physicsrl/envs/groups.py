@@ -1,0 +1,352 @@
+r"""Many environments in one MPI job: N simulator groups of P ranks, one batched env.
+
+Layout: a job of W ranks splits into N = W / P *groups* of P consecutive ranks (group g holds
+world ranks gP .. gP + P - 1). Each group builds its own mesh, simulator and task on its own
+communicator with its own :class:`~physicsrl.coordinated.Coordinator`, exactly as a single
+environment does; the first rank of a group leads it. World rank 0 runs the learner and also
+leads group 0.
+
+On world rank 0 the N environments appear as one TorchRL environment of ``batch_size=[N]``
+(:class:`GroupedEnv`). Its ``step`` sends the N - 1 remote actions to their group leaders
+(MPI point-to-point on a communicator of the group leaders), steps group 0's environment
+meanwhile, then gathers the N - 1 remote transitions; ``reset`` restarts only the
+environments that the ``"_reset"`` mask names, so TorchRL's ``Collector`` and
+``step_and_maybe_reset`` work unchanged. The other group leaders serve those requests
+(:func:`serve`); the other ranks serve their group leader's parallel calls.
+
+Seeds: environment i is seeded with ``seed + i * 2**40`` (:func:`member_seed`), so its
+episodes depend only on (seed, i, its episode count), never on P or W; environment 0 is
+seeded with ``seed`` itself, so N = 1 is the plain environment.
+
+Use it through :func:`environments`, on every rank::
+
+    with environments(lambda coordinator: make_env(cfg, coordinator), ranks_per_env=1) as env:
+        if env is not None:  # world rank 0: the learner
+            ...              # train on env (batch_size [N], or the plain env when N = 1)
+
+Failures: an exception on world rank 0 inside the block tells every group to stop with
+status 1 (the command-line wrapper then aborts the job); an exception in a simulator of any
+group ends the whole job through its coordinator (``MPI.Abort``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from mpi4py import MPI
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+
+from physicsrl.coordinated import Coordinator
+
+__all__ = ["GroupedEnv", "Layout", "environments", "member_seed", "serve", "spread_episodes"]
+
+SEED_STRIDE = 1 << 40
+_REQUEST, _REPLY = 31, 32
+_SEED, _RESET, _STEP, _GET_RNG, _SET_RNG, _CLOSE = range(6)
+
+
+def member_seed(seed: int | None, index: int) -> int | None:
+    """The seed of environment ``index`` of a batch seeded with ``seed``."""
+    return None if seed is None else int(seed) + index * SEED_STRIDE
+
+
+@dataclass(frozen=True)
+class Layout:
+    """How the ranks of ``world`` are split into groups of ``ranks_per_env`` ranks.
+
+    ``comm``: this rank's group; ``group``: its index (0 .. n_envs - 1); ``leaders``: the
+    communicator of the group leaders (rank g leads group g), ``MPI.COMM_NULL`` elsewhere.
+    """
+
+    world: MPI.Comm
+    ranks_per_env: int
+    n_envs: int
+    group: int
+    comm: MPI.Comm
+    leaders: MPI.Comm
+
+    @classmethod
+    def split(cls, ranks_per_env: int, world: MPI.Comm = MPI.COMM_WORLD) -> Layout:
+        """Split ``world`` (collective); ValueError naming the layout when P does not divide W."""
+        check_layout(ranks_per_env, world.size)
+        group = world.rank // ranks_per_env
+        comm = world.Split(group, world.rank) if ranks_per_env < world.size else world
+        is_leader = comm.rank == 0
+        leaders = world.Split(0 if is_leader else MPI.UNDEFINED, world.rank)
+        return cls(world, ranks_per_env, world.size // ranks_per_env, group, comm, leaders)
+
+
+def check_layout(ranks_per_env: int, world_size: int) -> None:
+    """ValueError in one line unless ``ranks_per_env`` is a divisor of ``world_size``."""
+    if not (isinstance(ranks_per_env, int) and 1 <= ranks_per_env <= world_size):
+        raise ValueError(
+            f"mpi.ranks_per_env={ranks_per_env!r} must be an integer from 1 to the job's "
+            f"{world_size} ranks"
+        )
+    if world_size % ranks_per_env:
+        raise ValueError(
+            f"mpi.ranks_per_env={ranks_per_env} does not divide the job's {world_size} ranks "
+            "into groups"
+        )
+
+
+def _numpy(td: TensorDictBase) -> dict:
+    """The leaves of an unbatched tensordict as numpy arrays (cheap to pickle)."""
+    return {key: value.numpy() for key, value in td.items(True, True)}
+
+
+def _tensordict(leaves: dict) -> TensorDict:
+    return TensorDict({key: torch.from_numpy(value) for key, value in leaves.items()}, [])
+
+
+class _Member:
+    """One environment of the batch as seen from world rank 0: local (group 0) or remote."""
+
+    def __init__(self, index: int, env: EnvBase | None, leaders: MPI.Comm | None):
+        self.index, self.env, self.leaders = index, env, leaders
+        self.state: TensorDictBase | None = None  # the local env's current tensordict
+
+    def send(self, command: int, argument=None) -> None:
+        if self.env is None:
+            self.leaders.send((command, argument), dest=self.index, tag=_REQUEST)
+
+    def result(self, command: int, argument=None):
+        """Run ``command`` here (local) or collect the reply to the request sent (remote)."""
+        if self.env is None:
+            return self.leaders.recv(source=self.index, tag=_REPLY)
+        return _run(self, command, argument)
+
+
+def _run(member: _Member, command: int, argument):
+    """Carry out ``command`` on the environment of ``member`` (on its group leader)."""
+    env = member.env
+    if command == _SEED:
+        env.set_seed(argument)
+        return None
+    if command == _RESET:
+        member.state = env.reset()
+        return _numpy(member.state)
+    if command == _STEP:
+        member.state["action"] = torch.as_tensor(argument)
+        step = env.step(member.state)
+        member.state = step["next"]
+        return _numpy(member.state)
+    if command == _GET_RNG:
+        return env.rng.bit_generator.state
+    if command == _SET_RNG:
+        env.rng.bit_generator.state = argument
+        return None
+    raise ValueError(f"unknown command {command!r}")
+
+
+def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: float = 0.002):
+    """Answer world rank 0's requests for ``env`` (a group leader other than rank 0) until it
+    sends close; return the exit status it sends. Between requests the rank polls: busily for
+    ``spin_s`` seconds (yielding the core when ranks outnumber cores), then sleeping at most
+    ``max_sleep_s`` between polls, so that it leaves the core to a learner that trains."""
+    member = _Member(leaders.rank, env, None)
+    oversubscribed = leaders.Get_size() > len(os.sched_getaffinity(0))
+    while True:
+        spin_until, sleep = time.perf_counter() + spin_s, 1e-5
+        while not leaders.Iprobe(source=0, tag=_REQUEST):
+            if time.perf_counter() < spin_until:
+                if oversubscribed:
+                    os.sched_yield()
+                continue
+            time.sleep(sleep)
+            sleep = min(2 * sleep, max_sleep_s)
+        command, argument = leaders.recv(source=0, tag=_REQUEST)
+        if command == _CLOSE:
+            return int(argument)
+        leaders.send(_run(member, command, argument), dest=0, tag=_REPLY)
+
+
+class GroupedEnv(EnvBase):
+    """The N environments of a :class:`Layout` as one TorchRL env of ``batch_size=[N]``
+    (world rank 0 only; see the module docstring).
+
+    Keys and specs are those of the member environments with a leading dimension N.
+    ``rng`` is not a single generator: checkpoints use :meth:`rng_state` /
+    :meth:`set_rng_state` (one state per member).
+    """
+
+    def __init__(self, env: EnvBase, layout: Layout, seed: int | None = None):
+        if layout.world.rank != 0:
+            raise ValueError("GroupedEnv lives on world rank 0 (the learner)")
+        n = layout.n_envs
+        super().__init__(device=env.device, batch_size=[n])
+        self.layout = layout
+        self.members = [_Member(0, env, None)] + [
+            _Member(i, None, layout.leaders) for i in range(1, n)
+        ]
+        shape = torch.Size([n])
+        self.observation_spec = env.observation_spec.expand(shape + env.observation_spec.shape)
+        self.action_spec = env.action_spec.expand(shape + env.action_spec.shape)
+        self.reward_spec = env.reward_spec.expand(shape + env.reward_spec.shape)
+        self.done_spec = env.done_spec.expand(shape + env.done_spec.shape)
+        self._last: list[dict | None] = [None] * n
+        self._set_seed(seed)
+
+    @property
+    def local_env(self) -> EnvBase:
+        """Group 0's environment (on the learner's rank: plots, fields)."""
+        return self.members[0].env
+
+    @property
+    def task(self):
+        """Group 0's task: its settings and hooks (baselines, scores) are every group's."""
+        return self.local_env.task
+
+    @property
+    def reward_fn(self):
+        return self.local_env.reward_fn
+
+    def _all(self, command: int, arguments: Sequence, indices: Sequence[int]) -> list:
+        """Send ``command`` with ``arguments[k]`` to member ``indices[k]``, remote ones first,
+        so that they work while the local one does; the results in the order of ``indices``."""
+        members = [self.members[i] for i in indices]
+        for member, argument in zip(members, arguments, strict=True):
+            member.send(command, argument)
+        local = [k for k, m in enumerate(members) if m.env is not None]
+        results = [None] * len(members)
+        for k in local:
+            results[k] = members[k].result(command, arguments[k])
+        for k, member in enumerate(members):
+            if k not in local:
+                results[k] = member.result(command)
+        return results
+
+    # seeds and random state -------------------------------------------------------------------
+    def _set_seed(self, seed: int | None) -> None:
+        self.seed_each([member_seed(seed, i) for i in range(self.batch_size[0])])
+
+    def seed_each(self, seeds: Sequence[int | None], indices: Sequence[int] | None = None):
+        """Seed member ``indices[k]`` (default: all) with ``seeds[k]``."""
+        indices = range(self.batch_size[0]) if indices is None else indices
+        self._all(_SEED, list(seeds), list(indices))
+
+    def rng_state(self) -> list[dict]:
+        """The episode generators' states, one per member."""
+        n = self.batch_size[0]
+        return self._all(_GET_RNG, [None] * n, range(n))
+
+    def set_rng_state(self, states: Sequence[dict]) -> None:
+        n = self.batch_size[0]
+        if len(states) != n:
+            raise ValueError(f"{len(states)} generator states for {n} environments")
+        self._all(_SET_RNG, list(states), range(n))
+
+    # reset and step -----------------------------------------------------------------------
+    def reset_some(self, indices: Sequence[int]) -> dict[int, dict]:
+        """Reset members ``indices``; their first values (key -> numpy array, unbatched)."""
+        results = self._all(_RESET, [None] * len(indices), indices)
+        for i, leaves in zip(indices, results, strict=True):
+            self._last[i] = leaves
+        return dict(zip(indices, results, strict=True))
+
+    def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
+        """Step members ``actions.keys()`` with their actions; their next values."""
+        indices = list(actions)
+        return dict(zip(indices, self._all(_STEP, list(actions.values()), indices), strict=True))
+
+    def _batch(self, rows: dict[int, dict]) -> TensorDict:
+        """Stack per-member values into one tensordict of batch size [N]; absent members get
+        their last reset values (TorchRL's partial-reset update masks them out)."""
+        filled = [rows.get(i, self._last[i]) for i in range(self.batch_size[0])]
+        keys = next(iter(rows.values())).keys()
+        return TensorDict(
+            {key: torch.from_numpy(np.stack([row[key] for row in filled])) for key in keys},
+            self.batch_size,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+        n = self.batch_size[0]
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        indices = range(n) if mask is None else mask.reshape(n).nonzero().flatten().tolist()
+        return self._batch(self.reset_some(list(indices)))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        actions = tensordict["action"].reshape(self.batch_size[0]).tolist()
+        return self._batch(self.step_some(dict(enumerate(actions))))
+
+    def close_groups(self, status: int = 0) -> None:
+        """Release the other group leaders (their serve loops return ``status``)."""
+        for member in self.members[1:]:
+            member.send(_CLOSE, status)
+
+
+def spread_episodes(
+    env: GroupedEnv, policy: Callable, seeds: Sequence[int], max_steps: int
+) -> list[TensorDict]:
+    """One episode per seed, spread over the members (K seeds take about K / N episode
+    times): member i runs seeds i, i + N, ...; each episode is the unbatched rollout its
+    member would produce alone (a stack of steps with ``"next"``), in the order of ``seeds``."""
+    n = env.batch_size[0]
+    episodes: list[TensorDict | None] = [None] * len(seeds)
+    for start in range(0, len(seeds), n):
+        chunk = list(seeds[start : start + n])
+        members = list(range(len(chunk)))
+        env.seed_each(chunk, members)
+        current = {i: _tensordict(v) for i, v in env.reset_some(members).items()}
+        steps: dict[int, list[TensorDict]] = {i: [] for i in members}
+        for _ in range(max_steps):
+            if not current:
+                break
+            actions = {i: int(policy(td.clone())["action"]) for i, td in current.items()}
+            following = {i: _tensordict(v) for i, v in env.step_some(actions).items()}
+            for i, td in following.items():
+                step = current[i].clone()
+                step["action"] = torch.as_tensor(actions[i])
+                step["next"] = td
+                steps[i].append(step)
+            current = {
+                i: td.exclude("reward") for i, td in following.items() if not bool(td["done"])
+            }
+        for i in members:
+            episodes[start + i] = torch.stack(steps[i])
+    return episodes
+
+
+@contextmanager
+def environments(
+    make_env: Callable[[Coordinator], EnvBase],
+    ranks_per_env: int = 1,
+    seed: int | None = None,
+    world: MPI.Comm = MPI.COMM_WORLD,
+) -> Iterator[EnvBase | None]:
+    """Split ``world`` into groups (:class:`Layout`), build one environment per group with
+    ``make_env(coordinator)`` (collective within the group) and yield, on world rank 0, the
+    batched env (the plain env when there is one group); None on every other rank, after its
+    group has been released. See the module docstring."""
+    layout = Layout.split(ranks_per_env, world)
+    coordinator = Coordinator(layout.comm)
+    env = make_env(coordinator)
+    with coordinator:
+        if world.rank == 0:
+            grouped = env if layout.n_envs == 1 else GroupedEnv(env, layout, seed)
+            if layout.n_envs == 1 and seed is not None:
+                env.set_seed(seed)
+            status = 1
+            try:
+                yield grouped
+                status = 0
+            except SystemExit as stop:  # a clean exit on the learner is clean everywhere
+                status = stop.code if isinstance(stop.code, int) else int(stop.code is not None)
+                raise
+            finally:
+                if isinstance(grouped, GroupedEnv):
+                    grouped.close_groups(status)
+        elif coordinator.is_leader():
+            status = serve(env, layout.leaders)
+            if status:
+                raise SystemExit(status)
+            yield None
+        else:
+            yield None
