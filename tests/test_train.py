@@ -136,7 +136,7 @@ def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
 
     env = SimpleNamespace(
         observation_spec=Composite(observation=Unbounded(shape=(1,))),
-        action_spec=Categorical(2),
+        action_spec_unbatched=Categorical(2),
     )
     q_network = builders.make_q_network(env, Network(hidden=[4], normalize=False))
     loss = builders.make_loss(q_network, env, LossConfig(gamma=0.5, double_dqn=False))
@@ -160,7 +160,7 @@ def test_q_network_reads_its_inputs_concatenated():
         observation_spec=Composite(
             observation=Unbounded(shape=(3,)), step=Bounded(0, 15, shape=(1,), dtype=torch.int64)
         ),
-        action_spec=Categorical(2),
+        action_spec_unbatched=Categorical(2),
     )
     network = Network(inputs=["observation", "step"], hidden=[8], normalize=False)
     q_network = builders.make_q_network(env, network)

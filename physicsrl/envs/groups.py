@@ -201,8 +201,9 @@ class GroupedEnv(EnvBase):
 
     @property
     def task(self):
-        """Group 0's task: its settings and hooks (baselines, scores) are every group's."""
-        return self.local_env.task
+        """Group 0's task (None for an env without one): its settings and hooks (baselines,
+        scores) are every group's."""
+        return vars(self.local_env).get("task")  # not getattr: EnvBase.__getattr__ searches on
 
     @property
     def reward_fn(self):
