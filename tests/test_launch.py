@@ -62,7 +62,8 @@ def test_mismatched_rank_request_is_a_one_line_error(tmp_path):
 def test_unknown_benchmark_is_a_one_line_error(tmp_path):
     result = run([str(BIN / "physicsrl-bench"), "pong"], cwd=tmp_path)
     assert result.returncode != 0
-    assert result.stderr.strip() == "error: unknown benchmark 'pong'; choose one of ping, ms, env, groups"
+    expected = "error: unknown benchmark 'pong'; choose one of ping, ms, env, groups"
+    assert result.stderr.strip() == expected
 
 
 def test_an_exception_inside_a_hydra_command_ends_every_rank(tmp_path):

@@ -39,8 +39,9 @@ class ToyChainEnv(EnvBase, Coordinated):
 
     @parallel
     def _simulate(self, t: int) -> int:
-        """Stand-in for a distributed solve: every rank takes part in a reduction."""
-        return MPI.COMM_WORLD.allreduce(t, op=MPI.MAX)
+        """Stand-in for a distributed solve: every rank of the env's group takes part in a
+        reduction (its coordinator's communicator, not COMM_WORLD: a job may hold many envs)."""
+        return self.coordinator.comm.allreduce(t, op=MPI.MAX)
 
     def _obs(self):
         return torch.tensor([self.t / self.length, self.c / self.length], dtype=torch.float32)
