@@ -107,7 +107,7 @@ def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None =
         tensorboard=config.logger.tensorboard,
         checkpoint_every=config.checkpoint.every,
         keep_checkpoints=config.checkpoint.keep,
-        checkpoint_extra={"config": as_dict(config)},
+        checkpoint_extra={"config": as_dict(config), "environments": n_environments(env)},
         coordinator=coordinator,
         progress=config.logger.progress,
         action_counts=task.action_counts if task else {},
@@ -145,9 +145,9 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume_dir: Path | 
     dojo = make_dojo(config, env, coordinator, log_dir)
     if resume_dir is not None:
         state = dojo.load_checkpoint(CheckpointManager(resume_dir / "checkpoints").latest())
-        old = state.get("extra", {}).get("config", {})
-        check_environments(old.get("mpi", {}), ranks // per_env)
-        warn_differences(old, dojo.checkpoint_extra["config"])
+        extra = state.get("extra", {})
+        check_environments(extra.get("environments", 1), n_environments(env))
+        warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
     started = time.perf_counter()
     summary = dojo.train(config.iterations)
     summary["wall_s"] = time.perf_counter() - started
@@ -167,10 +167,14 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume_dir: Path | 
     return dojo.stopped
 
 
-def check_environments(mpi: dict, n_envs: int) -> None:
+def n_environments(env) -> int:
+    """N: the environments behind ``env`` (a batched env's batch size, else 1)."""
+    return env.batch_size[0] if isinstance(env, GroupedEnv) else 1
+
+
+def check_environments(before: int, n_envs: int) -> None:
     """Exit with one line unless the checkpoint's run had ``n_envs`` environments: their
     episode generators are part of the exact resume."""
-    before = mpi.get("ranks", 1) // mpi.get("ranks_per_env", 1)
     if before != n_envs:
         print(
             f"error: the checkpoint's run had {before} environment(s), this job has {n_envs} "
