@@ -4,8 +4,9 @@ env's own cost per step against N (issue 12).
 Transitions per second of the ATP task at the report's grid for (N, P) = (1, 1), (1, 2),
 (2, 1) in one run of this script, and (2, 2), (4, 1) oversubscribed (this machine has 2
 cores: those rows check correctness, not speed); the learner's cost per batched step of
-no-op environments at N = 1, 2, 4, 8, fitted as cost = a + b N so that N = 64 or 1000 can be
-predicted. Writes benchmarks/results/groups.{csv,png,txt}.
+no-op environments at N = 1, 2, 4, 8 (its own cost: the wall time per step minus the wait for
+the group leaders' replies), fitted as cost = a + b N so that N = 64 or 1000 can be predicted.
+Writes benchmarks/results/groups.{csv,png,txt}.
 
     python benchmarks/groups_scaling.py [--decisions 5]
 """
@@ -41,14 +42,14 @@ def main() -> None:
             rows += bench_record("groups", f"mpi.ranks={n}", "atp=false")["rows"]
 
     atp = {(r["envs"], r["ranks_per_env"]): r for r in rows if r["what"] == "atp"}
-    no_op = sorted((r["envs"], r["step_ms"]) for r in rows if r["what"] == "no-op")
+    no_op = sorted((r["envs"], r["own_ms"]) for r in rows if r["what"] == "no-op")
     x, y = np.array(no_op).T
     b, a = np.polyfit(x, y, 1)
     rate = {layout: atp[layout]["transitions_per_s"] for layout in atp}
     decision_ms = atp[(1, 1)]["step_ms"]
-    overhead_8 = dict(no_op)[8] - dict(no_op)[1]  # what batching adds to the plain env's step
+    overhead_8 = dict(no_op)[8]
     lines = [
-        f"batched env cost per step on the learner: {a:.3f} + {b:.4f} * N ms (no-op envs; "
+        f"batched env's own cost per step on the learner: {a:.3f} + {b:.4f} * N ms (no-op envs; "
         f"predicts N = 64: {a + 64 * b:.2f} ms, N = 1000: {a + 1000 * b:.1f} ms)",
         f"(2, 1) / (1, 1) transitions per second: {rate[2, 1] / rate[1, 1]:.2f}x",
         f"(2, 1) / (1, 2) transitions per second: {rate[2, 1] / rate[1, 2]:.2f}x",
@@ -68,7 +69,7 @@ def main() -> None:
     left.set(ylabel="ATP transitions per second", title="60 x 60 ATP, by layout (2 cores)")
     right.plot(x, y, "o", label="measured (no-op envs)")
     right.plot(x, a + b * x, "-", label=f"{a:.3f} + {b:.4f} N ms")
-    right.set(xlabel="environments N", ylabel="ms per batched step", title="batched env cost")
+    right.set(xlabel="environments N", ylabel="ms per batched step", title="learner's own cost")
     right.legend()
     save_results("groups", rows, figure, lines)
 

@@ -1,26 +1,37 @@
 """Evaluate the ATP baseline policies on held-out seeds: the bar a trained agent must clear.
 
-    python experiments/atp_baselines.py [--experiment atp] [--seeds 20] [--select-seeds 5]
-                                        [--single-shock K] [--policies NAME,...] [key=value ...]
+    python experiments/atp_baselines.py [--experiment atp] [--seeds 20] [--open-loop]
+                                        [--select-seeds 5] [--single-shock K]
+                                        [--policies NAME,...] [--resume] [key=value ...]
+    mpiexec -n 2 python experiments/atp_baselines.py ...   # 2 environments share the seeds
 
 The env is the training preset's (``physicsrl-train +experiment=EXPERIMENT``), composed by
-Hydra exactly as the training run composes it. Policies: never shock, always shock, random
-(p = 0.5), shock every 4th decision, and the best single shock: the decision of the one shock
-(or none) is chosen by mean return on the first ``--select-seeds`` seeds (every decision
-tried), then evaluated on all seeds; ``--single-shock K`` fixes the decision instead. The
-policies and their names are the ATP task's baselines
-(:func:`~physicsrl.envs.baselines.atp_baselines`).
-``--policies`` keeps only the named ones (never,always,random,every4,single). Seeds are the
-held-out evaluation seeds 1000000000, 1000000001, ...
+Hydra exactly as the training run composes it, and built as the run builds it: W ranks run
+W / ``mpi.ranks_per_env`` environments, which share the seeds (same rows as one).
 
-Writes, on the leader, ``<experiment>_baselines.csv`` (one row per policy: mean return, success
-rate, mean shocks and decisions), ``<experiment>_baselines_per_seed.csv`` and
-``<experiment>_baselines.txt`` (the command and commit).
+Policies (default): never shock, always shock, random (p = 0.5), shock every 4th decision, and
+the best single shock: the decision of the one shock (or none) is chosen by mean return on the
+first ``--select-seeds`` seeds (every decision tried), then evaluated on all seeds;
+``--single-shock K`` fixes the decision instead (:func:`~physicsrl.envs.baselines.atp_baselines`).
+``--policies`` keeps only the named ones (never,always,random,every4,single).
+
+``--open-loop`` evaluates instead every open-loop schedule on all seeds
+(:func:`~physicsrl.envs.baselines.open_loop_schedules`: never, always, one shock at each
+decision, every k-th decision from each offset for k = 2..6) and names the best: the bar of
+closed-loop control. Seeds are the held-out evaluation seeds 1000000000, 1000000001, ...
+
+Writes, on the leader, ``<name>.csv`` (one row per policy: mean return, success rate, mean
+shocks and decisions), ``<name>_per_seed.csv`` (after each policy) and ``<name>.txt`` (the
+command, commit and settings), where name is ``<experiment>_baselines`` or
+``<experiment>_open_loop``. ``--resume`` keeps the policies already in ``<name>_per_seed.csv``
+when the settings are the same.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import json
 import shlex
 import subprocess
 import sys
@@ -29,20 +40,23 @@ from pathlib import Path
 from physicsrl import builders
 from physicsrl.cli.command import compose
 from physicsrl.config import held_out_seeds
-from physicsrl.coordinated import Coordinator, abort_on_error
-from physicsrl.envs.baselines import atp_baselines
-from physicsrl.evaluation import compare, write_csv
+from physicsrl.coordinated import abort_on_error
+from physicsrl.envs.baselines import atp_baselines, open_loop_schedules
+from physicsrl.envs.groups import environments
+from physicsrl.evaluation import mean_metrics, run_episodes, write_csv
 
 POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--experiment", default="atp", help="the preset: atp | atp_wide")
+    parser.add_argument("--experiment", default="atp", help="the preset: atp | atp_wide | ...")
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--open-loop", action="store_true", help="search every open-loop schedule")
     parser.add_argument("--select-seeds", type=int, default=5)
     parser.add_argument("--single-shock", type=int, help="the single shock's decision (no search)")
     parser.add_argument("--policies", default=",".join(POLICIES))
+    parser.add_argument("--resume", action="store_true", help="keep the policies already done")
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
     args = parser.parse_args()
@@ -50,31 +64,73 @@ def main() -> None:
     unknown = [k for k in keep if k not in POLICIES]
     if unknown:
         parser.error(f"--policies: unknown {unknown}; use {','.join(POLICIES)}")
-    commit = subprocess.run(
-        ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
-    ).stdout.strip()
+    name = f"{args.experiment}_{'open_loop' if args.open_loop else 'baselines'}"
+    settings = {"experiment": args.experiment, "seeds": args.seeds, "overrides": args.overrides}
     cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
-    coordinator = Coordinator()
-    env = builders.make_env(cfg, coordinator)
-    seeds = held_out_seeds(args.seeds)
-    with abort_on_error(), coordinator:
-        if not coordinator.is_leader():
+    make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
+    with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
+        if env is None:  # a rank that served an environment
             return
-        single = args.single_shock if "single" in keep else 0  # 0: no search when unused
-        policies = atp_baselines(env, seeds[: args.select_seeds], single_shock=single)
-        policies = {n: p for k, (n, p) in zip(POLICIES, policies.items(), strict=True) if k in keep}
-        per_seed, means = compare(env, policies, seeds, env.task.action_counts)
-        rows = [
-            {k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()} for r in means
-        ]
-        print(*rows, sep="\n", flush=True)
+        seeds = held_out_seeds(args.seeds)
+        done = previous_rows(args.out / name, settings) if args.resume else {}
+        if args.open_loop:
+            policies = open_loop_schedules(env.task.max_steps)
+        else:
+            single = args.single_shock if "single" in keep else 0  # 0: no search when unused
+            policies = atp_baselines(env, seeds[: args.select_seeds], single_shock=single)
+            policies = {
+                n: p for k, (n, p) in zip(POLICIES, policies.items(), strict=True) if k in keep
+            }
         args.out.mkdir(parents=True, exist_ok=True)
-        write_csv(args.out / f"{args.experiment}_baselines.csv", rows)
-        write_csv(args.out / f"{args.experiment}_baselines_per_seed.csv", per_seed)
-        command = shlex.join(["python", *sys.argv])
-        (args.out / f"{args.experiment}_baselines.txt").write_text(
-            f"{command}\ncommit {commit or 'unknown'}\n"
+        (args.out / f"{name}.txt").write_text(
+            f"{shlex.join(['python', *sys.argv])}\ncommit {commit()}\n"
+            f"settings {json.dumps(settings)}\n"
         )
+        per_seed, means = [], []
+        for policy_name, policy in policies.items():
+            rows = done.get(policy_name) or [
+                {"policy": policy_name, **row}
+                for row in run_episodes(env, policy, seeds, env.task.action_counts)
+            ]
+            per_seed += rows
+            means.append({"policy": policy_name, **rounded(mean_metrics(rows))})
+            print(means[-1], flush=True)
+            write_csv(args.out / f"{name}_per_seed.csv", per_seed)
+        write_csv(args.out / f"{name}.csv", means)
+        if args.open_loop:
+            best = max(means, key=lambda row: row["return"])
+            print(f"bar (best open-loop schedule by mean return): {best}", flush=True)
+
+
+def previous_rows(stem: Path, settings: dict) -> dict[str, list[dict]]:
+    """Policy -> per-seed rows of a previous run with the same ``settings`` (one line and exit
+    2 when they differ); {} when there is none."""
+    record, table = stem.with_suffix(".txt"), Path(f"{stem}_per_seed.csv")
+    if not (record.exists() and table.exists()):
+        return {}
+    line = next((s for s in record.read_text().splitlines() if s.startswith("settings ")), "")
+    if json.loads(line.removeprefix("settings ") or "{}") != settings:
+        print(f"error: --resume: {record} was made with other settings ({line})", file=sys.stderr)
+        raise SystemExit(2)
+    rows: dict[str, list[dict]] = {}
+    for row in csv.DictReader(table.open()):
+        rows.setdefault(row["policy"], []).append(
+            {k: v if k == "policy" else int(v) if k == "seed" else float(v) for k, v in row.items()}
+        )
+    return {k: v for k, v in rows.items() if len(v) == settings["seeds"]}
+
+
+def rounded(row: dict) -> dict:
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}
+
+
+def commit() -> str:
+    return (
+        subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
+        ).stdout.strip()
+        or "unknown"
+    )
 
 
 if __name__ == "__main__":

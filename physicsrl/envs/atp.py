@@ -250,7 +250,7 @@ class ATPTask(Task):
         model = asdict(config.model)
         warn = model.pop("warn_resolution")
         self.simulator = MonodomainMitchellSchaeffer(coordinator, domain, **model)
-        report(self.simulator.resolution, coordinator.comm, warn)
+        report(self.simulator.resolution, warn)
         self.register_coordinator(coordinator)
         V = self.simulator.V
         # Row 0: the integral of u over the domain (success test); then the observation's rows.

@@ -110,6 +110,19 @@ def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | N
     return Schedule([] if best is None else [best]), means
 
 
+def open_loop_schedules(
+    max_decisions: int, periods: Iterable[int] = range(2, 7)
+) -> dict[str, Policy]:
+    """Display name -> policy: every open-loop ATP schedule of the bar (a policy that reads no
+    observation): never and always shock, one shock at each decision 0 .. ``max_decisions`` - 1,
+    and a shock every k-th decision from each offset 0 .. k - 1 for k in ``periods``."""
+    schedules: dict[str, Policy] = {"never shock": Constant(0), "always shock": Constant(1)}
+    schedules |= {f"single shock at {d}": Schedule([d]) for d in range(max_decisions)}
+    for k in periods:
+        schedules |= {f"every {k} from {offset}": EveryKth(k, offset) for offset in range(k)}
+    return schedules
+
+
 def atp_baselines(
     env, seeds: Iterable[int], seed: int = 0, single_shock: int | None = None
 ) -> dict[str, Policy]:

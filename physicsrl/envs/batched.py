@@ -89,7 +89,7 @@ class BatchedATPEnv(EnvBase):
         model = asdict(config.model)
         warn = model.pop("warn_resolution")
         self.simulator = sim = BatchedMonodomain(domain, **model, device=device)
-        report(sim.resolution, MPI.COMM_WORLD, warn)  # rank 0 of the job prints it
+        report(sim.resolution, warn)
         V = sim.V
         rows = np.vstack([form_rows(V, [1.0]), observation.rows(V)])  # row 0: integral of u
         self.rows = sim.tensor(rows)

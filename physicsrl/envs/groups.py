@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from mpi4py import MPI
 from tensordict import TensorDict, TensorDictBase
+from torchrl import timeit
 from torchrl.envs import EnvBase
 
 from physicsrl.coordinated import Coordinator
@@ -120,6 +121,8 @@ class _Member:
     def result(self, command: int, argument=None):
         """Run ``command`` here (local) or collect the reply to the request sent (remote)."""
         if self.env is None:
+            with timeit("groups/wait"):  # the remote group's work, not the learner's own cost
+                self.leaders.Probe(source=self.index, tag=_REPLY)
             return self.leaders.recv(source=self.index, tag=_REPLY)
         return _run(self, command, argument)
 

@@ -103,12 +103,13 @@ class ResolutionWarning(UserWarning):
 _warned = False
 
 
-def report(resolution: Resolution, comm: MPI.Comm, warn: bool = True) -> None:
-    """Print ``resolution`` on rank 0 of ``comm``, and once per process a
-    :class:`ResolutionWarning` (one line) if its expected CV error exceeds
-    :data:`MAX_CV_ERROR` in magnitude, unless ``warn`` is false."""
+def report(resolution: Resolution, warn: bool = True) -> None:
+    """Print ``resolution`` on rank 0 of the job (not on the leaders of other environment
+    groups: they simulate the same mesh), and once a :class:`ResolutionWarning` (one line) if
+    its expected CV error exceeds :data:`MAX_CV_ERROR` in magnitude, unless ``warn`` is
+    false."""
     global _warned
-    if comm.rank != 0:
+    if MPI.COMM_WORLD.rank != 0:
         return
     print(resolution, flush=True)
     if warn and not _warned and abs(resolution.cv_error) > MAX_CV_ERROR:
