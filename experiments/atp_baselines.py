@@ -115,9 +115,17 @@ def previous_rows(stem: Path, settings: dict) -> dict[str, list[dict]]:
     rows: dict[str, list[dict]] = {}
     for row in csv.DictReader(table.open()):
         rows.setdefault(row["policy"], []).append(
-            {k: v if k == "policy" else int(v) if k == "seed" else float(v) for k, v in row.items()}
+            {k: v if k == "policy" else number(v) for k, v in row.items()}
         )
     return {k: v for k, v in rows.items() if len(v) == settings["seeds"]}
+
+
+def number(text: str) -> int | float:
+    """A CSV cell as the number it was written from."""
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
 
 
 def rounded(row: dict) -> dict:

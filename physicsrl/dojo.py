@@ -67,7 +67,8 @@ class Counters:
 
 
 def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> TensorDictBase:
-    r"""The n-step transitions of a batch of consecutive steps (shape (T,), one env).
+    r"""The n-step transitions of a batch of consecutive steps (shape (..., T): T steps of
+    each environment of a batch).
 
     Step t becomes (s_t, a_t, R_t, s_{t+k}) with :math:`R_t = \sum_{i<k} \gamma^i r_{t+i}` and
     k = min(n, steps until the episode or the batch ends); ``steps_to_next_obs`` = k makes the
@@ -76,11 +77,14 @@ def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> Tens
     ``MultiStep`` does the sums but keeps step t's own done flags.
     """
     out = MultiStep(gamma, n_steps)(data)
-    last = torch.arange(data.shape[-1]) + out["steps_to_next_obs"].reshape(-1) - 1
+    steps = out["steps_to_next_obs"].reshape(data.shape)
+    last = torch.arange(data.shape[-1]) + steps - 1  # (..., T)
     ended = data["next"]
     for key in ("done", "terminated", "truncated"):
         if key in ended.keys():  # not every env reports truncated
-            out["next", key] = ended[key][last]
+            flags = ended[key]  # (..., T, 1)
+            index = last.reshape(*last.shape, *[1] * (flags.ndim - last.ndim)).expand_as(flags)
+            out["next", key] = flags.gather(data.ndim - 1, index)
     return out
 
 

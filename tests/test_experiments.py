@@ -1,13 +1,14 @@
 """Experiment presets, local sweeps and their collection, and the Slurm launcher config."""
 
 import csv
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import torch
 
-from tests.conftest import ROOT
+from tests.conftest import ROOT, SMALL_ATP
 
 TRAIN = str(Path(sys.executable).with_name("physicsrl-train"))
 TINY = [
@@ -35,6 +36,23 @@ def test_atp_presets_compose_with_the_report_figures():
     wide = compose("+experiment=atp_wide")
     assert "- -20.0\n    - 20.0" in wide  # the wider placement of the reset stimulus
     assert "iterations: 120" in wide and "n_steps: 8" in wide  # the rest from the atp preset
+
+
+def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
+    """``mpiexec -n 2 physicsrl-train +experiment=atp`` (on a small grid): two environments,
+    said in the first log line, with the preset's 8-step targets over a batch of both."""
+    run = tmp_path / "run"
+    command = [TRAIN, "+experiment=atp", "mpi.ranks=2", *SMALL_ATP, "iterations=2"]
+    command += ["collector.frames_per_batch=6", "optim.learning_starts=6", "eval.every=0"]
+    command += ["eval.seeds=[1000000000,1000000001]", "logger.progress=false"]
+    result = subprocess.run(
+        [*command, f"hydra.run.dir={run}"], capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0, result.stderr
+    first = next(line for line in (run / "train.log").read_text().splitlines() if "INFO" in line)
+    assert "2 environments of 1 rank (2 ranks)" in first
+    summary = json.loads((run / "summary.json").read_text())["summary"]
+    assert summary["frames"] == 12 and summary["updates"] > 0
 
 
 def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
@@ -85,6 +103,42 @@ def test_atp_baselines_script_tables_each_policy(tmp_path):
     single = next(r for name, r in rows.items() if name.startswith("best single shock"))
     assert float(single["shocks"]) <= 1
     assert "commit" in (tmp_path / "atp_baselines.txt").read_text()
+
+
+def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
+    """--open-loop on a small ATP preset: one row per open-loop schedule with its shocks as
+    scheduled; --resume keeps the rows already there (a marked row survives) and recomputes
+    the missing ones to the same values."""
+    script = ROOT / "experiments" / "atp_baselines.py"
+    small = ["env.mesh.cells=20", "env.max_decisions=3", "env.extra_waits=1"]
+    small += ["env.decision_interval=10", "env.shock.duration=5"]
+    command = [sys.executable, str(script), "--seeds", "1", "--open-loop", "--out", str(tmp_path)]
+    subprocess.run([*command, *small], check=True, capture_output=True, timeout=300)
+    per_seed = tmp_path / "atp_open_loop_per_seed.csv"
+    rows = list(csv.DictReader(per_seed.open()))
+    assert len(rows) == 2 + 3 + sum(range(2, 7))  # never, always, 3 singles, every k from o
+    for row in rows:  # the shocks taken are the schedule's, up to the episode's end
+        name, length = row["policy"], min(int(row["length"]), 3)
+        if name.startswith("every"):
+            k, offset = (int(word) for word in name.split()[1::2])
+            scheduled = range(offset, 3, k)
+        else:
+            scheduled = {"never shock": [], "always shock": range(3)}.get(name)
+            scheduled = [int(name.split()[-1])] if scheduled is None else scheduled
+        assert int(row["shocks"]) == sum(d < length for d in scheduled), name
+
+    kept, marked = rows[:10], dict(rows[0], **{"return": "12345.0"})
+    with per_seed.open("w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows([marked, *kept[1:]])
+    subprocess.run([*command, "--resume", *small], check=True, capture_output=True, timeout=300)
+    again = list(csv.DictReader(per_seed.open()))
+    assert again[0]["return"] == "12345.0"
+    assert [dict(r, **{"return": "x"}) for r in again[1:]] == [
+        dict(r, **{"return": "x"}) for r in rows[1:]
+    ]
+    assert [float(r["return"]) for r in again[10:]] == [float(r["return"]) for r in rows[10:]]
 
 
 def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path):

@@ -148,6 +148,42 @@ def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
     assert torch.allclose(target, expected)
 
 
+def test_n_step_transitions_of_a_batch_of_environments_are_each_its_own():
+    """A collection of N = 2 environments (shape (2, T)) with episodes ending at different
+    steps: each row's n-step transitions equal those of that environment alone."""
+    from tensordict import TensorDict
+
+    from physicsrl.dojo import n_step_transitions
+
+    def steps(ends: list[int], offset: float) -> TensorDict:
+        ended = torch.zeros(7, 1, dtype=torch.bool)
+        ended[ends] = True
+        return TensorDict(
+            observation=offset + torch.arange(7.0)[:, None],
+            action=torch.zeros(7, dtype=torch.int64),
+            next=TensorDict(
+                observation=offset + torch.arange(1.0, 8.0)[:, None],
+                reward=offset + torch.arange(7.0)[:, None],
+                done=ended,
+                terminated=ended.clone(),
+                batch_size=[7],
+            ),
+            batch_size=[7],
+        )
+
+    alone = [steps([1], 0.0), steps([4], 10.0)]
+    batch = n_step_transitions(torch.stack(alone), 3, 0.5)
+    for row, data in enumerate(alone):
+        expected = n_step_transitions(data, 3, 0.5)
+        for key in (
+            ("next", "reward"),
+            ("next", "observation"),
+            ("next", "done"),
+            "steps_to_next_obs",
+        ):
+            assert torch.equal(batch[row][key], expected[key]), (row, key)
+
+
 def test_q_network_reads_its_inputs_concatenated():
     """``inputs: [observation, step]``: the MLP sees (observation, step as a float) in that
     order; an input the env does not have is a one-line error naming it."""
