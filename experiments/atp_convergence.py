@@ -3,6 +3,7 @@ at increasing resolution.
 
     python experiments/atp_convergence.py --experiment atp --cells 120 [--seeds 5]
         [--policies never,single0,single1,single2,single3,every4] [key=value ...]
+    mpiexec -n 4 python experiments/atp_convergence.py ...   # 4 environments share the seeds
 
 One grid per call (``env.mesh.cells=CELLS``; the explicit scheme above 250 cells per side,
 where the implicit one costs minutes per decision). Policies: never shock, a single shock at
@@ -22,13 +23,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-from atp_baselines import episode
-
 from physicsrl import builders
-from physicsrl.cli.train import compose
-from physicsrl.coordinated import Coordinator, abort_on_error
-from physicsrl.dojo import held_out_seeds
+from physicsrl.cli.command import compose
+from physicsrl.config import held_out_seeds
+from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule
+from physicsrl.envs.groups import GroupedEnv, environments
+from physicsrl.evaluation import run_episodes
 
 EXPLICIT_ABOVE = 250
 FIELDS = ("cells", "scheme", "policy", "seed", "return", "success", "shocks", "length")
@@ -57,13 +58,11 @@ def main() -> None:
     scheme = "explicit" if args.cells > EXPLICIT_ABOVE else "implicit"
     overrides = [f"env.mesh.cells={args.cells}", f"env.model.scheme={scheme}", *args.overrides]
     cfg = compose("train", [f"+experiment={args.experiment}", *overrides])
-    coordinator = Coordinator()
-    env = builders.make_env(cfg, coordinator)
+    make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     results = args.out / f"{args.experiment}_convergence.csv"
-    with abort_on_error(), coordinator:
-        if not coordinator.is_leader():
+    with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
+        if env is None:  # a rank that served an environment
             return
-        print(env.task.simulator.resolution, flush=True)
         args.out.mkdir(parents=True, exist_ok=True)
         commit = subprocess.run(
             ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
@@ -74,19 +73,23 @@ def main() -> None:
         if results.exists():
             with results.open() as file:
                 done = {(r["cells"], r["policy"], r["seed"]) for r in csv.DictReader(file)}
-        for seed in held_out_seeds(args.seeds):
-            for name, actions in policies.items():
-                if (str(args.cells), name, str(seed)) in done:
-                    continue
-                row = {"cells": args.cells, "scheme": scheme, "policy": name, "seed": seed}
-                row |= episode(env, actions, seed)
-                new = not results.exists()
-                with results.open("a", newline="") as file:
-                    writer = csv.DictWriter(file, FIELDS)
-                    if new:
-                        writer.writeheader()
-                    writer.writerow(row)
-                print(row, flush=True)
+        n = env.batch_size[0] if isinstance(env, GroupedEnv) else 1
+        for name, actions in policies.items():
+            todo = [
+                s for s in held_out_seeds(args.seeds) if (str(args.cells), name, str(s)) not in done
+            ]
+            for start in range(0, len(todo), n):  # one episode per environment, then saved
+                for row in run_episodes(
+                    env, actions, todo[start : start + n], env.task.action_counts
+                ):
+                    row = {"cells": args.cells, "scheme": scheme, "policy": name, **row}
+                    new = not results.exists()
+                    with results.open("a", newline="") as file:
+                        writer = csv.DictWriter(file, FIELDS, extrasaction="ignore")
+                        if new:
+                            writer.writeheader()
+                        writer.writerow(row)
+                    print({k: row[k] for k in FIELDS}, flush=True)
 
 
 if __name__ == "__main__":

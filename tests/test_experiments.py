@@ -141,6 +141,30 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
     assert [float(r["return"]) for r in again[10:]] == [float(r["return"]) for r in rows[10:]]
 
 
+def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
+    """The convergence script on a small grid, resuming a study with one row done (marked):
+    that row is kept, and one row per other (policy, seed) is appended, with the scheduled
+    shocks."""
+    script = ROOT / "experiments" / "atp_convergence.py"
+    small = [o for o in SMALL_ATP if not o.startswith("env.mesh.cells")]
+    results = tmp_path / "atp_convergence.csv"
+    done = "cells,scheme,policy,seed,return,success,shocks,length\n"
+    results.write_text(done + "20,implicit,never,1000000000,-7.0,0.0,0,3\n")
+    command = [sys.executable, str(script), "--cells", "20", "--policies", "never,single0"]
+    command += ["--seeds", "2", "--out", str(tmp_path), *small]
+    subprocess.run(command, check=True, capture_output=True, timeout=300)
+    rows = [
+        (r["policy"], r["seed"][-1], r["shocks"], r["return"])
+        for r in csv.DictReader(results.open())
+    ]
+    assert rows[0] == ("never", "0", "0", "-7.0")
+    assert [r[:3] for r in rows[1:]] == [
+        ("never", "1", "0"),
+        ("single0", "0", "1"),
+        ("single0", "1", "1"),
+    ]
+
+
 def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path):
     """The stored ATP policy (experiments/results/atp_agent.pt) on the first held-out seed, on
     2 MPI ranks: the return, success and shocks of that seed's row in atp_agent_eval.csv (made
