@@ -22,6 +22,11 @@ Four loops that numpy can only express as many passes over large temporaries:
     length and unrolls), the nodal reaction and current, for the owned rows, in place (a new
     value is held back in a small ring until no later row reads the old one), and the gate
     update of every local entry in place.
+``ms_stencil``
+    Steps of the same scheme on a structured grid of square Q1 cells, the state in grid order
+    (:mod:`physicsrl.fem.explicit`): the operator is the 9-point stencil, the Neumann condition
+    a mirror; one pass per step reads u and w and writes the other u buffer and w (32 bytes per
+    node), with no index arrays and no matrix values.
 ``cell_det``
     :math:`|\det J|` at the quadrature points of every cell from the coordinate element's
     derivative table (gdim = tdim = 1, 2, 3), as per-cell values plus the largest relative
@@ -69,6 +74,9 @@ void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns
                  const double *values, double *u, double *w, const double *current,
                  double dt, double tau_in, double tau_out, double u_gate, double a_open,
                  double b_open, double a_close, int64_t lag, double *ring);
+void ms_stencil(int64_t n, int64_t steps, double *u, double *w, const double *current,
+                double c, double dt, double tau_in, double tau_out, double u_gate,
+                double a_open, double b_open, double a_close, double *other);
 """
 
 _SOURCE = r"""
@@ -220,6 +228,49 @@ void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns
     else
         ROWS(width);
 #undef ROWS
+#if defined(__SSE__)
+    _mm_setcsr(csr);
+#endif
+}
+
+/* `steps` steps on the (n + 1) x (n + 1) nodes of square Q1 cells of side h in row-major
+   order, c = dt D / (3 h^2): (M_L^-1 K u)_ij = (8 u_ij - the 8 neighbours) / (3 h^2), node -1
+   mirrored to node 1 (the Neumann condition: the mirrored row is twice the boundary row of K
+   over twice its lumped mass). u and `other` alternate; the result is left in u. current: dt I
+   per node, or NULL. */
+void ms_stencil(int64_t n, int64_t steps, double *u, double *w, const double *current,
+                double c, double dt, double tau_in, double tau_out, double u_gate,
+                double a_open, double b_open, double a_close, double *other)
+{
+    const double k_in = dt / tau_in, k_out = dt / tau_out;
+    const int64_t s = n + 1;
+#if defined(__SSE__)
+    const unsigned int csr = _mm_getcsr(); /* subnormals to zero, as in ms_rhs */
+    _mm_setcsr(csr | 0x8040);
+#endif
+    double *from = u, *to = other;
+    for (int64_t step = 0; step < steps; ++step) {
+        for (int64_t i = 0; i <= n; ++i) {
+            const double *up = from + (i == 0 ? 1 : i - 1) * s, *um = from + i * s;
+            const double *dn = from + (i == n ? n - 1 : i + 1) * s;
+            double *wi_row = w + i * s, *out = to + i * s;
+            const double *cur = current ? current + i * s : 0;
+            for (int64_t j = 0; j <= n; ++j) {
+                const int64_t l = j == 0 ? 1 : j - 1, r = j == n ? n - 1 : j + 1;
+                const double ui = um[j], wi = wi_row[j];
+                const double ring = up[l] + up[j] + up[r] + um[l] + um[r] + dn[l] + dn[j] + dn[r];
+                const double v = ui - c * (8.0 * ui - ring)
+                                 + ui * (k_in * wi * ui * (1.0 - ui) - k_out);
+                out[j] = cur ? v + cur[j] : v;
+                wi_row[j] = ui < u_gate ? wi * a_open + b_open : wi * a_close;
+            }
+        }
+        double *swap = from;
+        from = to;
+        to = swap;
+    }
+    if (from != u)
+        memcpy(u, from, sizeof(double) * s * s);
 #if defined(__SSE__)
     _mm_setcsr(csr);
 #endif
