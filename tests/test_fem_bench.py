@@ -17,7 +17,7 @@ def test_ms_benchmark_core_on_a_tiny_grid():
     baseline's final u equals physicsrl's implicit one within 1e-8, the floor's equals the
     explicit one to round-off (the structured stencil is the assembled operator), and the
     explicit differs from the implicit (another scheme)."""
-    cfg = {"grid": {"n": 20}, "steps": 40, "baseline": True, "scheme": "both"}
+    cfg = {"grid": {"n": 20}, "steps": 40, "steps_per_call": 1, "baseline": True, "scheme": "both"}
     rows = ms.run(OmegaConf.create(cfg))
     names = ["physicsrl", "physicsrl explicit", "floor (structured C loop)", "report (baseline)"]
     assert [row["implementation"] for row in rows] == names

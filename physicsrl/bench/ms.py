@@ -6,8 +6,10 @@ steps, then 0 (the current is piecewise constant on cells and evaluated at cell 
 the region's edges, which run along mesh nodes, select the same cells on any rank count);
 ``steps`` steps, each one parallel ``advance_time(dt)`` call from the leader (so the
 coordination column holds the per-call costs: the parallel call, the step-count check and the
-finiteness check of u, not only per-step overhead). physicsrl computes the right-hand side
-with its compiled C kernel; ``+rhs=numpy`` selects the numpy kernel and ``+rhs=form``
+finiteness check of u, not only per-step overhead); ``steps_per_call=k`` advances k steps per
+call instead (as a task's decision does: 1667 steps), the steps of a call counted at its mean,
+the first call's as the first step. physicsrl computes the right-hand side with its compiled C
+kernel; ``+rhs=numpy`` selects the numpy kernel and ``+rhs=form``
 DOLFINx's assembly of the UFL form. Run in the same job for physicsrl's schemes
 (``scheme=implicit``, ``explicit`` or ``both``), on one rank with the explicit scheme for its
 floor (:mod:`physicsrl.bench.ms_floor`: a fused structured-grid C loop on the same state,
@@ -42,7 +44,12 @@ from physicsrl.fem.monodomain import SCHEMES
 DT = 0.03
 EXTENT = 50.0
 STIMULUS_STEPS = 30
-SETTINGS = {"grid.n": (int, 2), "steps": (int, 1), "baseline": (bool, None)}
+SETTINGS = {
+    "grid.n": (int, 2),
+    "steps": (int, 1),
+    "steps_per_call": (int, 1),
+    "baseline": (bool, None),
+}
 PHASES = ("solve", "rhs", "ionic", "explicit", "ghosts")
 
 
@@ -58,29 +65,44 @@ def no_current(x):
     return np.zeros(x.shape[1])
 
 
-def _time_steps(coordinator, model, steps: int) -> dict:
+def calls(steps: int, per_call: int) -> list[tuple[int, int]]:
+    """(first step, steps) of each call: ``per_call`` steps, fewer where the stimulus ends
+    (after step STIMULUS_STEPS - 1) or the run does."""
+    result, step = [], 0
+    while step < steps:
+        end = min(step + per_call, steps)
+        if step < STIMULUS_STEPS < end:
+            end = STIMULUS_STEPS
+        result.append((step, end - step))
+        step = end
+    return result
+
+
+def _time_steps(coordinator, model, steps: int, per_call: int) -> dict:
     """Run the benchmark's steps from the leader; return the leader's wall time of the first
     step and the mean wall time and phase times per step of the others, in milliseconds."""
     walls, after_first = [], {}
     with coordinator:
         if coordinator.is_leader():
-            for step in range(steps):
+            for step, count in calls(steps, per_call):
                 if step == STIMULUS_STEPS:
                     model.set_I_app(no_current)
                 start = time.perf_counter()
-                model.advance_time(DT)
-                walls.append(time.perf_counter() - start)
+                model.advance_time(count * DT)
+                walls += [(time.perf_counter() - start) / count] * count
                 if step == 0:
                     after_first = dict(model.timings)
-    return _summary(walls, model.timings, after_first, steps)
+    return _summary(walls, model.timings, after_first, steps, calls(steps, per_call)[0][1])
 
 
-def _summary(walls: list[float], timings: dict, after_first: dict, steps: int) -> dict:
-    """The first step's and the other steps' mean wall time and phases, in ms, from the
-    leader."""
-    others = max(steps - 1, 1)
+def _summary(
+    walls: list[float], timings: dict, after_first: dict, steps: int, first: int = 1
+) -> dict:
+    """The first call's (its ``first`` steps') and the other steps' mean wall time and phases
+    per step, in ms, from the leader."""
+    others = max(steps - first, 1)
     phases = {k: (v - after_first.get(k, 0.0)) / others * 1e3 for k, v in timings.items()}
-    step = float(np.mean(walls[1:])) * 1e3 if len(walls) > 1 else float("nan")
+    step = float(np.mean(walls[first:])) * 1e3 if len(walls) > first else float("nan")
     result = {"first_step_ms": walls[0] * 1e3 if walls else 0.0, "step_ms": step}
     result["run_s"] = float(np.sum(walls))
     result.update({f"{k}_ms": v for k, v in phases.items()})
@@ -88,7 +110,7 @@ def _summary(walls: list[float], timings: dict, after_first: dict, steps: int) -
     return MPI.COMM_WORLD.bcast(result, root=0)
 
 
-def _measure(name: str, build, steps: int) -> tuple[dict, object]:
+def _measure(name: str, build, steps: int, per_call: int) -> tuple[dict, object]:
     """Build (timed) and run one implementation; its row and the model."""
     comm = MPI.COMM_WORLD
     comm.Barrier()
@@ -96,7 +118,7 @@ def _measure(name: str, build, steps: int) -> tuple[dict, object]:
     coordinator, model = build()
     comm.Barrier()
     setup = time.perf_counter() - start
-    times = _time_steps(coordinator, model, steps)
+    times = _time_steps(coordinator, model, steps, per_call)
     row = {
         "implementation": name,
         "ranks": comm.size,
@@ -114,7 +136,7 @@ def _measure(name: str, build, steps: int) -> tuple[dict, object]:
     return row, model
 
 
-def _floor(model, n: int, steps: int) -> dict:
+def _floor(model, n: int, steps: int, per_call: int) -> dict:
     """The floor's row (one rank): the same initial state, current and steps as ``model``
     (built but not yet run), in grid order; its final u is compared with the model's."""
     start = time.perf_counter()
@@ -138,13 +160,13 @@ def _floor(model, n: int, steps: int) -> dict:
     floor.current = current
     setup = time.perf_counter() - start
     walls = []
-    for step in range(steps):
+    for step, count in calls(steps, per_call):
         if step == STIMULUS_STEPS:
             floor.current = None
         begin = time.perf_counter()
-        floor.advance(1)
-        walls.append(time.perf_counter() - begin)
-    times = _summary(walls, {}, {}, steps)
+        floor.advance(count)
+        walls += [(time.perf_counter() - begin) / count] * count
+    times = _summary(walls, {}, {}, steps, calls(steps, per_call)[0][1])
     return {
         "implementation": "floor (structured C loop)",
         "ranks": 1,
@@ -162,6 +184,7 @@ def run(cfg) -> list[dict]:
     """The rows (physicsrl's schemes, the floor, the baseline) of one benchmark run; the same
     on every rank."""
     n, steps, baseline = int(cfg.grid.n), int(cfg.steps), bool(cfg.baseline)
+    per_call = int(cfg.steps_per_call)
     rhs = str(cfg.get("rhs", "compiled"))  # "+rhs=numpy" / "+rhs=form": the other paths
     scheme = str(cfg.get("scheme", "implicit"))
     schemes = SCHEMES if scheme == "both" else (scheme,)
@@ -192,8 +215,8 @@ def run(cfg) -> list[dict]:
     rows, models = [], []
     for name, build in builds.items():
         if name.endswith("explicit") and comm.size == 1:
-            floor = _floor(build()[1], n, steps)
-        row, model = _measure(name, build, steps)
+            floor = _floor(build()[1], n, steps, per_call)
+        row, model = _measure(name, build, steps, per_call)
         rows.append(row)
         models.append(model)
         if name.endswith("explicit") and comm.size == 1:

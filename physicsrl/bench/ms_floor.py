@@ -11,8 +11,10 @@ index i (n + 1) + j), lumped mass h^2 in the interior, the explicit step of
 with the homogeneous Neumann condition by mirroring (node -1 reads node 1): the mirrored row
 is twice the boundary row of K over twice its lumped mass, so this is the assembled operator.
 One pass per step reads u and w, writes u_next and w (32 bytes per node), and the two u
-arrays alternate: no index arrays, no matrix values, no ghost update. The benchmark runs it in
-the same job as :class:`~physicsrl.fem.MonodomainMitchellSchaeffer` and compares the fields.
+arrays alternate: no index arrays, no matrix values, no ghost update. It is the kernel of the
+explicit scheme's structured path (:mod:`physicsrl.fem.explicit`), here called bare on arrays
+kept in grid order: no permutation, no per-call checks. The benchmark runs it in the same job
+as :class:`~physicsrl.fem.MonodomainMitchellSchaeffer` and compares the fields.
 """
 
 from __future__ import annotations
@@ -21,56 +23,16 @@ import time
 
 import numpy as np
 
-from physicsrl.fem.kernels import build, pointer
-
-_CDEF = """
-void ms_floor(int64_t n, const double *u, double *w, const double *current, double c,
-              double dt, double tau_in, double tau_out, double u_gate, double a_open,
-              double b_open, double a_close, double *u_next);
-"""
-
-_SOURCE = r"""
-#include <stdint.h>
-#if defined(__SSE__)
-#include <xmmintrin.h>
-#endif
-
-/* c = dt D / (3 h^2); nodes 0..n per side; current: dt I per node or NULL. */
-void ms_floor(int64_t n, const double *u, double *w, const double *current, double c,
-              double dt, double tau_in, double tau_out, double u_gate, double a_open,
-              double b_open, double a_close, double *u_next)
-{
-    const double k_in = dt / tau_in, k_out = dt / tau_out;
-    const int64_t s = n + 1;
-#if defined(__SSE__)
-    const unsigned int csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040);
-#endif
-    for (int64_t i = 0; i <= n; ++i) {
-        const double *up = u + (i == 0 ? 1 : i - 1) * s, *um = u + i * s;
-        const double *dn = u + (i == n ? n - 1 : i + 1) * s;
-        for (int64_t j = 0; j <= n; ++j) {
-            const int64_t l = j == 0 ? 1 : j - 1, r = j == n ? n - 1 : j + 1;
-            const double ui = um[j], wi = w[i * s + j];
-            const double ring = up[l] + up[j] + up[r] + um[l] + um[r] + dn[l] + dn[j] + dn[r];
-            double v = ui - c * (8.0 * ui - ring) + ui * (k_in * wi * ui * (1.0 - ui) - k_out);
-            u_next[i * s + j] = current ? v + current[i * s + j] : v;
-            w[i * s + j] = ui < u_gate ? wi * a_open + b_open : wi * a_close;
-        }
-    }
-#if defined(__SSE__)
-    _mm_setcsr(csr);
-#endif
-}
-"""
+from physicsrl.fem.kernels import load, pointer
 
 
 class StructuredFloor:
-    """The floor loop on n x n square cells of side h, with the model's parameters; the state
-    ``u``, ``w`` (shape ((n + 1)^2,), grid order) and ``current`` (dt I per node, or None)."""
+    """The floor loop (``ms_stencil`` of :mod:`physicsrl.fem.kernels`) on n x n square cells
+    of side h, with the model's parameters; the state ``u``, ``w`` (shape ((n + 1)^2,), grid
+    order) and ``current`` (dt I per node, or None)."""
 
     def __init__(self, n, h, *, D, tau_in, tau_out, tau_open, tau_close, u_gate, dt):
-        module = build("_physicsrl_ms_floor_", _CDEF, _SOURCE)
+        module = load()
         self.lib, self.ffi = module.lib, module.ffi
         self.n = n
         self.u, self.w = np.zeros((n + 1) ** 2), np.zeros((n + 1) ** 2)
@@ -92,14 +54,13 @@ class StructuredFloor:
         ffi = self.ffi
         current = ffi.NULL if self.current is None else pointer(ffi, self.current)
         start = time.perf_counter()
-        for _ in range(steps):
-            self.lib.ms_floor(
-                self.n,
-                pointer(ffi, self.u),
-                pointer(ffi, self.w),
-                current,
-                *self.constants,
-                pointer(ffi, self.other),
-            )
-            self.u, self.other = self.other, self.u
+        self.lib.ms_stencil(
+            self.n,
+            steps,
+            pointer(ffi, self.u),
+            pointer(ffi, self.w),
+            current,
+            *self.constants,
+            pointer(ffi, self.other),
+        )
         self.seconds += time.perf_counter() - start

@@ -28,7 +28,8 @@ On one rank, when the mesh is a structured grid of square Q1 cells (the rectangl
 with the Neumann condition as a mirror (node -1 reads node 1). :func:`structured_grid`
 detects it and checks it against the assembled rows on a random vector; :meth:`ExplicitStep.advance`
 then permutes the state to grid order once, runs all its steps with the stencil (``ms_stencil``:
-no index arrays, no matrix values, 32 bytes per node per step) and permutes back.
+no index arrays, no matrix values, 32 bytes per node per step) and permutes back, when it has
+at least :data:`GRID_MIN_STEPS` steps to run (the permutations cost a few passes).
 
 Stability of the diffusion part: forward Euler needs :math:`\Delta t \le 2 / (D \lambda_\max)`,
 :math:`\lambda_\max` the largest eigenvalue of :math:`M_L^{-1} K` (real and non-negative: it is
@@ -75,6 +76,10 @@ def stiffness_rows(V: fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray, np.nda
     indptr = np.ascontiguousarray(K.indptr[: owned + 1], dtype=np.int64)
     indices = np.ascontiguousarray(K.indices[: indptr[-1]], dtype=np.int32)
     return indptr, indices, np.array(K.data[: indptr[-1]], dtype=np.float64)
+
+
+GRID_MIN_STEPS = 8
+"""Fewest steps per :meth:`ExplicitStep.advance` for which the structured path is taken."""
 
 
 def structured_grid(V: fem.FunctionSpace, columns, values, scale: float):
@@ -191,7 +196,7 @@ class ExplicitStep:
 
     def advance(self, steps: int) -> None:
         """Run ``steps`` steps of u and w in place."""
-        if self.grid is not None and self.kernels is not None:
+        if self.grid is not None and self.kernels is not None and steps >= GRID_MIN_STEPS:
             self._advance_grid(steps)
             return
         clock, timings, step, u = time.perf_counter, self.timings, self._step, self.u
