@@ -2,8 +2,8 @@
 (issue 12).
 
 Three runs of the ATP preset (the report's 60 x 60 grid), each for ``--episodes`` episodes
-(``reset_at_each_iter``: one batch of ``frames_per_batch`` = 15 x N transitions is one episode
-per environment) with the same number of gradient updates per transition:
+(``reset_at_each_iter``: one batch of the preset's ``frames_per_env`` = 15 transitions per
+environment is one episode each) with the same number of gradient updates per transition:
 
 - ``one env on 2 ranks``: ``mpi.ranks=2 mpi.ranks_per_env=2``, what ``mpi.ranks=2`` meant
   before environments were grouped (the baseline of the goal);
@@ -51,7 +51,6 @@ def train(ranks: int, per_env: int, episodes: int) -> dict:
             f"mpi.ranks={ranks}",
             f"mpi.ranks_per_env={per_env}",
             f"iterations={episodes // n}",
-            f"collector.frames_per_batch={15 * n}",
             f"optim.updates_per_batch={UPDATES_PER_EPISODE * n}",
             "optim.learning_starts=30",
             "eval.every=0",

@@ -119,11 +119,17 @@ class Mpi:
 
 @dataclass
 class CollectorConfig:
-    frames_per_batch: int = 20
+    frames_per_batch: int = 20  # transitions per batch, over all environments
+    frames_per_env: int = 0  # > 0: frames_per_batch = frames_per_env x the environments
     reset_at_each_iter: bool = True  # every batch starts a fresh episode seeded by iteration
 
     def __post_init__(self):
         integer("collector.frames_per_batch", self.frames_per_batch, 1)
+        integer("collector.frames_per_env", self.frames_per_env, 0)
+
+    def frames(self, environments: int) -> int:
+        """Transitions per batch for a job of ``environments`` environments."""
+        return self.frames_per_env * environments if self.frames_per_env else self.frames_per_batch
 
 
 @dataclass

@@ -94,7 +94,7 @@ def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None =
             config.buffer, None if log_dir is None else log_dir / "buffer"
         ),
         exploration=builders.make_exploration(q_network, env, config.agent.exploration),
-        frames_per_batch=config.collector.frames_per_batch,
+        frames_per_batch=config.collector.frames(n_environments(env)),
         reset_at_each_iter=config.collector.reset_at_each_iter,
         updates_per_batch=config.optim.updates_per_batch,
         learning_starts=config.optim.learning_starts,

@@ -50,6 +50,29 @@ def test_default_atp_config_is_the_reference_task():
     assert (cfg.reward.shock_cost, cfg.reward.success_reward) == (10, 500)
 
 
+def test_a_rest_range_starts_the_agent_at_a_drawn_time():
+    """``reset.rest_time=[a, b]``: the rest after the stimulus is drawn from U(a, b) after the
+    stimulus draws, which stay those of a fixed rest (the generator's stream is unchanged);
+    the agent starts at model time stimulus_time + rest, and the field then differs from the
+    state after a rest of a alone."""
+    fixed, ranged = atp_env(), atp_env("env.reset.rest_time=[3,13]")
+    draws = {
+        name: [env.task.draw(np.random.default_rng(s)) for s in range(20)]
+        for name, env in (("fixed", fixed), ("ranged", ranged))
+    }
+    assert all(d[3] == 3.0 for d in draws["fixed"])
+    assert [d[:3] for d in draws["ranged"]] == [d[:3] for d in draws["fixed"]]
+    rests = np.array([d[3] for d in draws["ranged"]])
+    assert 3 <= rests.min() and rests.max() <= 13 and np.ptp(rests) > 5
+    with ranged.task.coordinator:
+        ranged.task.reset(*draws["ranged"][0])
+        late = ranged.task.simulator.u_n().x.array.copy()
+        assert ranged.task.simulator.t == pytest.approx(2 + rests[0], abs=0.03)
+        ranged.task.reset(*draws["ranged"][0][:3], 3.0)
+        assert ranged.task.simulator.t == pytest.approx(5, abs=0.03)
+        assert np.abs(ranged.task.simulator.u_n().x.array - late).max() > 0.01
+
+
 def test_atp_failure_and_success_by_hand():
     # Never succeeding: -10 per shock, 0 per wait; terminated (failure) at the 3rd decision.
     env = atp_env("env.success_threshold=-1e30")
@@ -147,7 +170,7 @@ def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
     ]
     env = atp_env(*overrides)
     task = env.task
-    draws = [(1.5, 3.0, 20.0), (-4.0, 2.5, 12.0)]
+    draws = [(1.5, 3.0, 20.0, 15.0), (-4.0, 2.5, 12.0, 15.0)]
     with task.coordinator:
         start = time.perf_counter()
         first = task.reset(*draws[0])

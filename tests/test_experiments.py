@@ -40,10 +40,11 @@ def test_atp_presets_compose_with_the_report_figures():
 
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
     """``mpiexec -n 2 physicsrl-train +experiment=atp`` (on a small grid): two environments,
-    said in the first log line, with the preset's 8-step targets over a batch of both."""
+    said in the first log line, with the preset's 8-step targets over a batch of both, and
+    batches of frames_per_env transitions per environment."""
     run = tmp_path / "run"
     command = [TRAIN, "+experiment=atp", "mpi.ranks=2", *SMALL_ATP, "iterations=2"]
-    command += ["collector.frames_per_batch=6", "optim.learning_starts=6", "eval.every=0"]
+    command += ["collector.frames_per_env=3", "optim.learning_starts=6", "eval.every=0"]
     command += ["eval.seeds=[1000000000,1000000001]", "logger.progress=false"]
     result = subprocess.run(
         [*command, f"hydra.run.dir={run}"], capture_output=True, text=True, timeout=300

@@ -146,10 +146,10 @@ def _report_episode(env, draws, actions) -> tuple[float, float]:
     with coordinator:
         if coordinator.is_leader():
             start = time.perf_counter()
-            model.set_I_app(_Rectangle(r.current, *draws))
+            model.set_I_app(_Rectangle(r.current, *draws[:3]))
             run(r.stimulus_time)
             model.set_I_app(_Zero())
-            run(r.rest_time)
+            run(draws[3])
             times.append(time.perf_counter() - start)
             for action in actions:
                 start = time.perf_counter()

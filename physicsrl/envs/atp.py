@@ -7,7 +7,9 @@ rounded to whole time steps: with dt = 0.03 a decision interval of 50 is 1667 st
 Reset (draws on the leader: ``c`` ~ U(``reset.centre_x``), ``h`` ~ U(``reset.half_width``),
 ``b`` ~ U(``reset.bottom``)): u0 = 0, w0 = min(-(x - c) / ``w_slope``, 1) for x < c else 0;
 ``reset.current`` applied on the rectangle \|x - c\| < h, y > b for ``stimulus_time``, then
-``rest_time`` without current, so that a spiral runs when the agent starts. A draw whose state
+``rest_time`` without current, so that a spiral runs when the agent starts (a pair [low, high]
+draws the rest ~ U(low, high) too: the agent then takes over at a random phase of the
+reentry). A draw whose state
 is not finite is replaced by a new draw. With ``reset.pool`` > 0 the draws come from a fixed
 pool of that many draws (generated from ``reset.pool_seed``), which makes snapshots pay off in
 training too. Snapshots (:mod:`physicsrl.envs.snapshots`) skip the induction of draws seen
@@ -42,6 +44,7 @@ waits so far).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import ClassVar
 
@@ -101,7 +104,7 @@ class ResetStimulus:
     w_slope: float = 20.0
     current: float = 50.0
     stimulus_time: float = 15.0
-    rest_time: float = 85.0
+    rest_time: float | tuple[float, float] = 85.0  # a pair: drawn uniformly
     pool: int = 0
     pool_seed: int = 0
 
@@ -112,7 +115,9 @@ class ResetStimulus:
         positive("w_slope", self.w_slope)
         number("current", self.current)
         number("stimulus_time", self.stimulus_time, low=0.0)
-        number("rest_time", self.rest_time, low=0.0)
+        rest = self.rest_time
+        rest = (number("rest_time", rest, low=0.0),) * 2 if not isinstance(rest, Sequence) else rest
+        object.__setattr__(self, "rest_time", interval("rest_time", rest, low=0.0))
         integer("pool", self.pool)
         integer("pool_seed", self.pool_seed)
 
@@ -123,9 +128,11 @@ class ResetSampler:
     from ``reset.pool_seed``)."""
 
     def __init__(self, config: ATPConfig):
+        self.rest = None  # the report induction's rest range, drawn last when it is one
         if config.induction == "report":
             r = config.reset
             self.ranges = (r.centre_x, r.half_width, r.bottom)
+            self.rest = r.rest_time
         else:
             f = config.cross_field
             self.ranges = (f.s2_delay, f.s2_edge, f.s2_bottom)
@@ -133,7 +140,11 @@ class ResetSampler:
         self.pool = [self._uniform(rng) for _ in range(config.reset.pool)]
 
     def _uniform(self, rng: np.random.Generator) -> tuple[float, ...]:
-        return tuple(float(rng.uniform(*bounds)) for bounds in self.ranges)
+        draws = tuple(float(rng.uniform(*bounds)) for bounds in self.ranges)
+        if self.rest is None:
+            return draws
+        low, high = self.rest  # a fixed rest takes no random number: the draws stay as they were
+        return (*draws, float(rng.uniform(low, high)) if low < high else low)
 
     def __call__(self, rng: np.random.Generator) -> tuple[float, ...]:
         return self.pool[int(rng.integers(len(self.pool)))] if self.pool else self._uniform(rng)
@@ -271,9 +282,10 @@ class ATPTask(Task):
         self.decisions = 0
         self.intervals = 0  # decision intervals simulated since the reset (with extra waits)
 
-    def draw(self, rng: np.random.Generator) -> tuple[float, float, float]:
-        """The reset's draws: (c, h, b), the centre, half-width and bottom of the stimulus
-        (``induction: report``), or (delay, edge, bottom) of S2 (``cross_field``)."""
+    def draw(self, rng: np.random.Generator) -> tuple[float, ...]:
+        """The reset's draws: (c, h, b, rest), the centre, half-width and bottom of the
+        stimulus and the rest after it (``induction: report``), or (delay, edge, bottom) of S2
+        (``cross_field``)."""
         return self.sampler(rng)
 
     # episodes --------------------------------------------------------------------------------
@@ -283,11 +295,11 @@ class ATPTask(Task):
         if self.config.induction == "cross_field":
             self._cross_field(*draws)
             return
-        c, h, b = draws
+        c, h, b, rest = draws
         r, sim = self.config.reset, self.simulator
         sim.set_initial_condition(0.0, half_plane_gate(c, r.w_slope))
         sim.reset()
-        self._stimulate(self.stimulus(r.current, c, h, b), r.stimulus_time, r.rest_time)
+        self._stimulate(self.stimulus(r.current, c, h, b), r.stimulus_time, rest)
 
     def _cross_field(self, delay: float, edge: float, bottom: float) -> None:
         f, sim = self.config.cross_field, self.simulator
@@ -321,8 +333,7 @@ class ATPTask(Task):
     def _start_time(self, draws: tuple) -> float:
         """The model time at which the agent starts after a reset with ``draws``."""
         if self.config.induction == "report":
-            r = self.config.reset
-            return r.stimulus_time + r.rest_time
+            return self.config.reset.stimulus_time + draws[3]
         f = self.config.cross_field
         return f.s1_time + draws[0] + f.stimulus_time + f.rest_time
 

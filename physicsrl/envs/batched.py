@@ -77,10 +77,11 @@ class BatchedATPEnv(EnvBase):
         if missing:
             raise ValueError(f"reward.name {reward.name!r} reads events {sorted(missing)}")
         B = integer("env.replicas", replicas, 1)
-        if config.induction != "report":
+        if config.induction != "report" or len(set(config.reset.rest_time)) > 1:
             raise ValueError(
-                f"env.induction={config.induction!r}: the torch backend induces the report's "
-                "arrhythmia only (induction: report)"
+                f"env.induction={config.induction!r}, env.reset.rest_time="
+                f"{list(config.reset.rest_time)}: the torch backend induces the report's "
+                "arrhythmia with a fixed rest only (induction: report, one rest_time)"
             )
         super().__init__(device="cpu", batch_size=[B])
         self.config, self.observation, self.reward_fn = config, observation, reward
@@ -145,16 +146,18 @@ class BatchedATPEnv(EnvBase):
     def _run(self, u, w, current, duration: float) -> torch.Tensor:
         return self.simulator.advance(u, w, current, self.simulator.steps(duration))
 
-    def _induce(self, draws: list[tuple[float, float, float]]):
+    def _induce(self, draws: list[tuple[float, ...]]):
         """(u, w, finite) after the reset's induction of each draw, in one batch."""
         r, sim = self.config.reset, self.simulator
-        w = torch.stack([sim.nodal(half_plane_gate(c, r.w_slope)) for c, _, _ in draws])
+        w = torch.stack([sim.nodal(half_plane_gate(c, r.w_slope)) for c, *_ in draws])
         u = torch.zeros_like(w)
         current = sim.tensor(
-            np.array([self.stimulus(r.current, *d).x.array[: sim.num_cells].copy() for d in draws])
+            np.array(
+                [self.stimulus(r.current, *d[:3]).x.array[: sim.num_cells].copy() for d in draws]
+            )
         )
         finite = self._run(u, w, current, r.stimulus_time)
-        finite &= self._run(u, w, None, r.rest_time)
+        finite &= self._run(u, w, None, r.rest_time[0])
         return u, w, finite
 
     def _start(self, replicas: list[int]) -> None:
