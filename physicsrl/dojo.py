@@ -345,7 +345,12 @@ class Dojo:
         if self._collector is not None and not self.reset_at_each_iter:
             self._collector.reset()  # evaluation moved the env away from the batch in flight
         if record and policy is self.q_network:
-            row = {"iteration": self.counters.iteration, "frames": self.counters.frames, **metrics}
+            row = {
+                "iteration": self.counters.iteration,
+                "frames": self.counters.frames,
+                "wall_s": round(sum(self.counters.time_s.values()), 3),  # of training, resumes too
+                **metrics,
+            }
             self.history.append(row)
             self._log_evaluation(row)
         return metrics
@@ -458,13 +463,15 @@ class Dojo:
             scalar(f"time/{phase}_s", seconds, step)
 
     def _log_evaluation(self, row: dict) -> None:
-        text = " ".join(f"{k} {v:.4g}" for k, v in row.items() if k not in ("iteration", "frames"))
+        counters = ("iteration", "frames", "wall_s")
+        text = " ".join(f"{k} {v:.4g}" for k, v in row.items() if k not in counters)
         log.info("eval at iteration %d (%d frames): %s", row["iteration"], row["frames"], text)
         if self.writer is not None:
             for key, value in row.items():
-                if key not in ("iteration", "frames"):
+                if key not in counters:
                     name = "success_rate" if key == "success" else key
                     self.writer.add_scalar(f"eval/{name}", value, row["iteration"])
+                    self.writer.add_scalar(f"eval_by_env_steps/{name}", value, row["frames"])
         if self.log_dir is not None:
             write_csv(self.log_dir / "eval.csv", self.history)
 

@@ -151,9 +151,11 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume_dir: Path | 
     started = time.perf_counter()
     summary = dojo.train(config.iterations)
     summary["wall_s"] = time.perf_counter() - started
+    summary["ranks"], summary["environments"] = ranks, n_environments(env)  # for core-hours
     table = []
     if dojo.history:  # a stop request skips the baselines: it should end quickly
-        greedy = {k: v for k, v in dojo.history[-1].items() if k not in ("iteration", "frames")}
+        counters = ("iteration", "frames", "wall_s")
+        greedy = {k: v for k, v in dojo.history[-1].items() if k not in counters}
         table = [{"policy": "greedy DQN", **greedy}]
         if config.eval.baselines and not dojo.stopped:
             policies = baselines(env, config, config.eval.seeds)

@@ -166,6 +166,38 @@ def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
     ]
 
 
+def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
+    """The cost-normalised curves: core-hours are wall-clock hours times the job's ranks (from
+    its summary), and the figure is written with the best row of a baseline table."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "curve", ROOT / "experiments" / "learning_curve.py"
+    )
+    curve = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(curve)
+    rows = [{"frames": 30, "wall_s": 1800.0}, {"frames": 60, "wall_s": 5400.0}]
+    x = curve.curves(rows, ranks=4)
+    assert x == {
+        "environment steps": [30, 60],
+        "wall-clock hours": [0.5, 1.5],
+        "core-hours": [2.0, 6.0],
+    }
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "eval.csv").write_text("iteration,frames,wall_s,return,success\n1,30,1800,5,0.2\n")
+    (run / "summary.json").write_text(json.dumps({"summary": {"ranks": 2}}))
+    table = tmp_path / "bars.csv"
+    table.write_text("policy,return,success\nnever,1,0\nsingle shock at 1,447,0.95\n")
+    assert curve.best_rows([table])[0]["policy"] == "single shock at 1"
+    script = [sys.executable, str(ROOT / "experiments" / "learning_curve.py")]
+    png = tmp_path / "curve.png"
+    subprocess.run(
+        [*script, str(run), str(png), "--baselines", str(table)], check=True, timeout=120
+    )
+    assert png.stat().st_size > 10_000
+
+
 def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path):
     """The stored ATP policy (experiments/results/atp_agent.pt) on the first held-out seed, on
     2 MPI ranks: the return, success and shocks of that seed's row in atp_agent_eval.csv (made
