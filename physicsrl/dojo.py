@@ -39,7 +39,7 @@ from tensordict import TensorDictBase
 from torchrl.checkpoint import Checkpoint, GlobalRNGState, StateDictCheckpointAdapter
 from torchrl.collectors import Collector
 from torchrl.data.postprocs import MultiStep
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, CheckpointsError, State
@@ -199,7 +199,6 @@ class Dojo:
         self._stop_reason: str | None = None
         self._saved_iteration = -1  # the iteration of the last checkpoint written or loaded
         self._checkpoint_failed = False
-        self._partial_returns: list[float] = []  # per env, of episodes running across batches
         self._pending_rng: dict | None = None
         self._collector: Collector | None = None
         self._coordination_s = 0.0
@@ -216,7 +215,7 @@ class Dojo:
         self._check_seeds(iterations)
         self._open_logs()
         collector = self._collector = Collector(
-            self.env,
+            TransformedEnv(self.env, RewardSum()),  # each episode's return so far
             self.exploration,
             frames_per_batch=self.frames_per_batch,
             total_frames=-1,  # the loop counts iterations itself (and never closes the env)
@@ -283,21 +282,13 @@ class Dojo:
             self.env.set_seed(train_seed(self.seed, self.counters.iteration))
 
     def _record_batch(self, data: TensorDictBase) -> list[float]:
-        """Count frames and episodes; return the returns of the episodes finished here. The
-        batch is (time,) for one environment and (environments, time) for many."""
+        """Count frames and episodes; return the returns of the episodes finished here (the
+        collector's ``RewardSum`` at their last steps, episodes begun in earlier batches
+        included). The batch is (time,) for one environment and (environments, time) for
+        many."""
         self.counters.frames += data.numel()
-        rows = data.reshape(-1, data.shape[-1])
-        rewards = rows["next", "reward"].reshape(rows.shape).tolist()
-        dones = rows["next", "done"].reshape(rows.shape).tolist()
-        if self.reset_at_each_iter or len(self._partial_returns) != len(rewards):
-            self._partial_returns = [0.0] * len(rewards)
-        returns = []
-        for env, (env_rewards, env_dones) in enumerate(zip(rewards, dones, strict=True)):
-            for reward, done in zip(env_rewards, env_dones, strict=True):
-                self._partial_returns[env] += reward
-                if done:
-                    returns.append(self._partial_returns[env])
-                    self._partial_returns[env] = 0.0
+        ended = data["next", "done"].reshape(data.shape)
+        returns = data["next", "episode_reward"].reshape(data.shape)[ended].tolist()
         self.counters.episodes += len(returns)
         return returns
 
