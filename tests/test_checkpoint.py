@@ -10,14 +10,18 @@ The runs train the toy chain of ``tests/mpi_scripts/train_toy_env.py`` for a few
 from __future__ import annotations
 
 import json
+import os
+import shlex
+import shutil
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from physicsrl.checkpoint import Checkpoints, damage, read
 from tests.conftest import MPIEXEC, ROOT
-from tests.test_train import TOY, TRAIN, checkpoint_name, run, same
+from tests.test_train import TOY, TRAIN, checkpoint_name, run, same, start_and_wait_for
 
 SHORT = [
     f"+env.factory={TOY}:make_env",
@@ -116,6 +120,33 @@ def test_a_full_disk_stops_training_with_the_older_checkpoints_intact(tmp_path):
     assert outcome["files"] == [checkpoint_name(2), checkpoint_name(4)]  # no temporary files
     assert all(damage(directory / name) is None for name in outcome["files"])
     assert read(directory / checkpoint_name(4), ["counters"])["counters"]["iteration"] == 4
+
+
+@pytest.mark.skipif(
+    os.geteuid() == 0 and not shutil.which("capsh"), reason="root writes anywhere without capsh"
+)
+def test_a_checkpoint_directory_made_read_only_during_training_stops_the_run(tmp_path):
+    """``chmod 555 checkpoints`` once a checkpoint is written (as root, with the capability
+    that overrides file permissions dropped): the run stops at its next save, exit status 1,
+    one line naming the directory and no traceback; its checkpoints are intact."""
+    run_dir = tmp_path / "run"
+    arguments = [TRAIN, *SHORT, "iterations=100000", f"hydra.run.dir={run_dir}"]
+    if os.geteuid() == 0:
+        arguments = ["capsh", "--drop=cap_dac_override", "--", "-c", shlex.join(arguments)]
+    directory = run_dir / "checkpoints"
+    process = start_and_wait_for(arguments, tmp_path, directory / checkpoint_name(2))
+    directory.chmod(0o555)
+    try:
+        output, _ = process.communicate(timeout=120)
+    finally:
+        directory.chmod(0o755)
+    assert process.returncode == 1, output
+    assert "Traceback" not in output
+    stops = [line for line in output.splitlines() if "stopped at iteration" in line]
+    assert len(stops) == 1, output
+    assert stops[0].endswith(f"cannot write checkpoints to {directory}: Permission denied")
+    checkpoints = Checkpoints(directory, keep=3).paths()
+    assert checkpoints and all(damage(path) is None for path in checkpoints)
 
 
 def test_read_returns_the_states_the_dojo_saved(tmp_path):
