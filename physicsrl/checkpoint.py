@@ -1,106 +1,184 @@
-"""Atomic training checkpoints and random-number-generator states.
+"""Training checkpoints on TorchRL's ``torchrl.checkpoint``, and the run directory to resume.
 
-A checkpoint is one ``torch.save`` file ``checkpoints/ckpt_<iteration>.pt`` written to a
-temporary name first and moved into place with ``os.replace``, so a kill at any moment leaves
-either the previous complete checkpoint or the new one, never half a file. The last ``keep``
-are kept.
+A run's checkpoints are TorchRL archives ``checkpoints/ckpt-<iteration, 12 digits>.torchrl``
+(one ZIP file each: a JSON manifest and one payload per component), written by a
+:class:`~torchrl.checkpoint.Checkpoint` and rotated by a
+:class:`~torchrl.checkpoint.CheckpointRotation` that keeps the newest ``keep``. TorchRL stages
+every save under a temporary name, publishes it with ``os.replace`` and removes its temporary
+files when a save fails, so a kill at any moment leaves complete checkpoints only. Added here,
+what TorchRL does not do:
+
+- :meth:`Checkpoints.save` syncs the published archive and its directory to disk;
+- :meth:`Checkpoints.check_writable` finds a directory that cannot be written when the run
+  starts, not at its first save;
+- :meth:`Checkpoints.newest_readable` skips damaged checkpoints (the newest one truncated by a
+  full disk or a crash while copying), with one warning naming each;
+- :func:`read`: a checkpoint's stored states without the objects they came from;
+- :func:`find_run`: the run directory of ``resume=``.
 """
 
 from __future__ import annotations
 
+import logging
 import os
-import random
-import re
+import tempfile
+import zipfile
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
+from torchrl.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    CheckpointRotation,
+    JSONCheckpointAdapter,
+    StateDictCheckpointAdapter,
+)
 
-__all__ = ["CheckpointManager", "rng_state", "set_rng_state", "find_run"]
+__all__ = ["Checkpoints", "State", "read", "checkpoint_file", "find_run", "CheckpointsError"]
 
-NAME = re.compile(r"^ckpt_(\d+)\.pt$")
+log = logging.getLogger("physicsrl.checkpoint")
+
+PREFIX = "ckpt"  # checkpoints/ckpt-000000000010.torchrl
+SUFFIX = ".torchrl"  # TorchRL's name for its archive format
 
 
-class CheckpointManager:
-    """Writes and finds the checkpoints of one run directory."""
+class CheckpointsError(OSError):
+    """A checkpoint directory that cannot be written, or holds no readable checkpoint."""
 
-    def __init__(self, directory: str | Path, keep: int = 3):
-        self.directory = Path(directory)
-        self.keep = max(1, int(keep))
+
+class State:
+    """A checkpoint component made of a getter and a setter, for state that is not an object
+    with ``state_dict``/``load_state_dict`` of its own (counters, generator states)."""
+
+    def __init__(self, get: Callable[[], Any] | None, set: Callable[[Any], None]):
+        self.get, self.set = get, set
+
+    def state_dict(self) -> Any:
+        return self.get()
+
+    def load_state_dict(self, state: Any) -> None:
+        self.set(state)
+
+
+class Checkpoints:
+    """The checkpoints of one run directory's ``checkpoints/``, the newest ``keep`` kept."""
+
+    def __init__(self, directory: str | Path, keep: int):
+        self.rotation = CheckpointRotation(directory, keep_last=int(keep), prefix=PREFIX)
+        self.directory = self.rotation.directory
 
     def paths(self) -> list[Path]:
-        """Complete checkpoints, oldest first."""
+        """The checkpoint files, readable or not, oldest first."""
         if not self.directory.is_dir():
             return []
-        found = [
-            (int(m.group(1)), p) for p in self.directory.iterdir() if (m := NAME.match(p.name))
-        ]
-        return [p for _, p in sorted(found)]
+        return sorted(self.directory.glob(f"{PREFIX}-{'[0-9]' * 12}{SUFFIX}"))
 
     def latest(self) -> Path | None:
         paths = self.paths()
         return paths[-1] if paths else None
 
-    def save(self, state: dict, iteration: int) -> Path:
-        self.directory.mkdir(parents=True, exist_ok=True)
-        final = self.directory / f"ckpt_{iteration:08d}.pt"
-        temporary = self.directory / f".ckpt_{iteration:08d}.pt.{os.getpid()}.tmp"
-        with open(temporary, "wb") as stream:
-            torch.save(state, stream)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(temporary, final)
-        for old in self.paths()[: -self.keep]:
-            old.unlink(missing_ok=True)
-        return final
+    def check_writable(self) -> None:
+        """Create the directory and a file in it, or raise :class:`CheckpointsError`."""
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            with tempfile.NamedTemporaryFile(dir=self.directory, prefix=".probe-"):
+                pass
+        except OSError as error:
+            raise CheckpointsError(
+                f"cannot write checkpoints to {self.directory}: {error.strerror or error}"
+            ) from error
 
-    @staticmethod
-    def load(path: str | Path) -> dict:
-        return torch.load(path, map_location="cpu", weights_only=False)
+    def save(self, checkpoint: Checkpoint, iteration: int) -> Path:
+        """Write ``checkpoint`` as iteration ``iteration``'s, on disk when this returns (a failed
+        save raises :class:`CheckpointsError` and leaves the older checkpoints as they were)."""
+        try:
+            path = self.rotation.save(checkpoint, step=int(iteration))
+            for synced in (path, self.directory):  # TorchRL publishes without syncing
+                descriptor = os.open(synced, os.O_RDONLY)
+                try:
+                    os.fsync(descriptor)
+                finally:
+                    os.close(descriptor)
+        except OSError as error:
+            raise CheckpointsError(
+                f"cannot write checkpoints to {self.directory}: {error.strerror or error}"
+            ) from error
+        return path
+
+    def newest_readable(self) -> Path:
+        """The newest checkpoint whose archive is intact (manifest and checksums), after one
+        warning per damaged newer one; none intact: :class:`CheckpointsError` naming them."""
+        damaged: dict[Path, str] = {}
+        for path in reversed(self.paths()):
+            problem = damage(path)
+            if problem is None:
+                for bad, why in damaged.items():
+                    log.warning("skipping unreadable checkpoint %s: %s", bad, why)
+                return path
+            damaged[path] = problem
+        found = ", ".join(path.name for path in damaged) or "none there"
+        raise CheckpointsError(f"no readable checkpoint in {self.directory}: {found}")
 
 
-def find_run(resume: str, runs: Path, exclude: Path | None = None) -> Path:
+def damage(path: Path) -> str | None:
+    """What is wrong with the checkpoint archive ``path`` (None: it is intact)."""
+    try:
+        Checkpoint.manifest(path)
+        with zipfile.ZipFile(path) as archive:
+            member = archive.testzip()  # reads every member, checking its CRC
+    except (CheckpointError, OSError, EOFError, zipfile.BadZipFile) as error:
+        return " ".join(str(error).split()) or type(error).__name__
+    return None if member is None else f"{member} is corrupt"
+
+
+def read(path: str | Path, names: Iterable[str] | None = None) -> dict:
+    """The states stored in the checkpoint ``path`` (all components, or ``names``), by component
+    name: state dicts and JSON values, without the objects they came from."""
+    components = Checkpoint.manifest(path)["components"]
+    names = list(components if names is None else names)
+    states: dict[str, Any] = {}
+    checkpoint = Checkpoint()
+    for name in names:
+        if components[name]["adapter"] == StateDictCheckpointAdapter.adapter_id:
+            capture = State(None, lambda state, name=name: states.__setitem__(name, state))
+            checkpoint.register(name, capture, adapter=StateDictCheckpointAdapter())
+        else:
+            checkpoint.register(name, None, adapter=JSONCheckpointAdapter())
+    loaded = checkpoint.load(path, map_location="cpu")
+    return {name: states[name] if name in states else loaded.values.get(name) for name in names}
+
+
+def checkpoint_file(run: str | Path) -> Path:
+    """The checkpoint of ``run``: a checkpoint file itself, or a run directory's newest one
+    (ValueError naming ``run`` otherwise)."""
+    path = Path(run).expanduser()
+    if path.is_file():
+        if not Checkpoint.is_checkpoint(path):
+            raise ValueError(f"run={run} is not a checkpoint file (a TorchRL {SUFFIX} archive)")
+        return path
+    latest = Checkpoints(path / "checkpoints", keep=1).latest()
+    if latest is None:
+        raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
+    return latest
+
+
+def find_run(resume: str, runs: Path) -> Path:
     """The run directory to resume: ``resume`` itself (a run directory or a checkpoint file),
-    or with ``resume == "true"`` the newest directory under ``runs`` holding a checkpoint."""
+    or with ``resume == "true"`` the directory under ``runs`` whose newest checkpoint is the
+    newest."""
+
+    def latest(run: Path) -> Path | None:
+        return Checkpoints(run / "checkpoints", keep=1).latest()
+
     if resume.lower() != "true":
         path = Path(resume).expanduser()
         if path.is_file():
             path = path.parent.parent
-        if not CheckpointManager(path / "checkpoints").latest():
+        if not latest(path):
             raise FileNotFoundError(f"resume={resume}: no checkpoint under {path / 'checkpoints'}")
         return path
-    candidates = [
-        d
-        for d in (runs.iterdir() if runs.is_dir() else [])
-        if d.is_dir()
-        and (exclude is None or d.resolve() != exclude.resolve())
-        and CheckpointManager(d / "checkpoints").latest()
-    ]
+    candidates = [d for d in (runs.iterdir() if runs.is_dir() else []) if d.is_dir() and latest(d)]
     if not candidates:
         raise FileNotFoundError(f"resume=true: no run with a checkpoint under {runs}")
-    return max(
-        candidates, key=lambda d: CheckpointManager(d / "checkpoints").latest().stat().st_mtime
-    )
-
-
-# random number generators ---------------------------------------------------------------------
-def rng_state(env: Any = None) -> dict:
-    """The global torch, numpy and python generator states, and the env's own
-    (``env.rng_state()``, for envs that hold a generator: :class:`~physicsrl.envs.PhysicsEnv`)."""
-    state = {
-        "torch": torch.get_rng_state(),
-        "numpy": np.random.get_state(),
-        "python": random.getstate(),
-    }
-    if hasattr(env, "rng_state"):
-        state["env"] = env.rng_state()
-    return state
-
-
-def set_rng_state(state: dict, env: Any = None) -> None:
-    torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
-    random.setstate(state["python"])
-    if "env" in state and hasattr(env, "set_rng_state"):
-        env.set_rng_state(state["env"])
+    return max(candidates, key=lambda d: latest(d).stat().st_mtime)

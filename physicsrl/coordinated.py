@@ -61,6 +61,7 @@ from mpi4py import MPI
 
 __all__ = [
     "Coordinator",
+    "wait_for",
     "Coordinated",
     "CoordinationError",
     "CollectiveError",
@@ -98,6 +99,31 @@ class CollectiveError(Exception):
 
 class SequenceDivergence(CoordinationError, CollectiveError):
     """Ranks executed different parallel methods (found by the ``check`` option)."""
+
+
+def wait_for(
+    ready: Callable[[], bool],
+    spin_s: float,
+    max_sleep_s: float,
+    oversubscribed: bool,
+    idle: Callable[[], None] | None = None,
+) -> None:
+    """Return once ``ready()`` is true (a message has arrived). Polls busily for ``spin_s``
+    seconds, yielding the core at each poll when ranks outnumber cores (the rank we wait for
+    may need it), then sleeps between polls, 10 us doubling up to ``max_sleep_s`` (the worst
+    extra latency of an idle rank), calling ``idle()`` after each sleep."""
+    spin_until = time.perf_counter() + spin_s
+    while not ready():
+        if oversubscribed:
+            os.sched_yield()
+        if time.perf_counter() > spin_until:
+            sleep = 1e-5
+            while not ready():
+                time.sleep(sleep)
+                sleep = min(2 * sleep, max_sleep_s)
+                if idle is not None:
+                    idle()
+            return
 
 
 def _fail(comm: MPI.Comm, where: str) -> None:
@@ -304,20 +330,14 @@ class Coordinator:
     def _receive(self) -> tuple[int, int, bytes | memoryview]:
         """Wait for the leader's next message and pass it on; return (route, flags, payload)."""
         self._receiving.Start()
-        test = self._receiving.Test
-        if not test():
-            spin_until = time.perf_counter() + self.spin_s
-            while not test():
-                if self._oversubscribed:
-                    os.sched_yield()  # let the rank we are waiting for have the core
-                if time.perf_counter() > spin_until:
-                    sleep = 1e-5
-                    while not test():
-                        time.sleep(sleep)
-                        sleep = min(2 * sleep, self.max_sleep_s)
-                        if self._unreported:
-                            self._report()
-                    break
+        if not self._receiving.Test():  # the hot path: the next call is already here
+            wait_for(
+                self._receiving.Test,
+                self.spin_s,
+                self.max_sleep_s,
+                self._oversubscribed,
+                idle=self._report_if_unreported,
+            )
         self._forward()
         route, flags, n, self._sequence = _HEADER.unpack_from(self._message)
         if n <= INLINE_BYTES:
@@ -325,6 +345,10 @@ class Coordinator:
         rest = bytearray(n - INLINE_BYTES)
         self._channel.Bcast(rest, 0)
         return route, flags, bytes(self._view[_HEADER.size :]) + rest
+
+    def _report_if_unreported(self) -> None:
+        if self._unreported:
+            self._report()
 
     def serve(self) -> None:
         """Run the leader's calls until it leaves its ``with`` block (followers only)."""

@@ -36,12 +36,13 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.checkpoint import Checkpoint, GlobalRNGState, StateDictCheckpointAdapter
 from torchrl.collectors import Collector
 from torchrl.data.postprocs import MultiStep
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 
 from physicsrl import builders
-from physicsrl.checkpoint import CheckpointManager, rng_state, set_rng_state
+from physicsrl.checkpoint import Checkpoints, CheckpointsError, State
 from physicsrl.config import (
     CheckpointConfig,
     CollectorConfig,
@@ -196,12 +197,12 @@ class Dojo:
         self.checkpoints = (
             None
             if self.log_dir is None
-            else CheckpointManager(self.log_dir / "checkpoints", keep_checkpoints)
+            else Checkpoints(self.log_dir / "checkpoints", keep_checkpoints)
         )
         self.writer = None
         self._stop_reason: str | None = None
         self._saved_iteration = -1  # the iteration of the last checkpoint written or loaded
-        self._partial_returns: list[float] = []  # per env, of episodes running across batches
+        self._checkpoint_failed = False
         self._pending_rng: dict | None = None
         self._collector: Collector | None = None
         self._coordination_s = 0.0
@@ -218,7 +219,7 @@ class Dojo:
         self._check_seeds(iterations)
         self._open_logs()
         collector = self._collector = Collector(
-            self.env,
+            TransformedEnv(self.env, RewardSum()),  # each episode's return so far
             self.exploration,
             frames_per_batch=self.frames_per_batch,
             total_frames=-1,  # the loop counts iterations itself (and never closes the env)
@@ -227,7 +228,7 @@ class Dojo:
             auto_register_policy_transforms=False,
         )
         if self._pending_rng is not None:  # after the collector's own initial reset
-            set_rng_state(self._pending_rng, self.env)
+            self._set_rng_state(self._pending_rng)
             self._pending_rng = None
         restore = self._install_signal_handlers() if handle_signals else None
         bar = self._progress_bar(iterations)
@@ -285,21 +286,13 @@ class Dojo:
             self.env.set_seed(train_seed(self.seed, self.counters.iteration))
 
     def _record_batch(self, data: TensorDictBase) -> list[float]:
-        """Count frames and episodes; return the returns of the episodes finished here. The
-        batch is (time,) for one environment and (environments, time) for many."""
+        """Count frames and episodes; return the returns of the episodes finished here (the
+        collector's ``RewardSum`` at their last steps, episodes begun in earlier batches
+        included). The batch is (time,) for one environment and (environments, time) for
+        many."""
         self.counters.frames += data.numel()
-        rows = data.reshape(-1, data.shape[-1])
-        rewards = rows["next", "reward"].reshape(rows.shape).tolist()
-        dones = rows["next", "done"].reshape(rows.shape).tolist()
-        if self.reset_at_each_iter or len(self._partial_returns) != len(rewards):
-            self._partial_returns = [0.0] * len(rewards)
-        returns = []
-        for env, (env_rewards, env_dones) in enumerate(zip(rewards, dones, strict=True)):
-            for reward, done in zip(env_rewards, env_dones, strict=True):
-                self._partial_returns[env] += reward
-                if done:
-                    returns.append(self._partial_returns[env])
-                    self._partial_returns[env] = 0.0
+        ended = data["next", "done"].reshape(data.shape)
+        returns = data["next", "episode_reward"].reshape(data.shape)[ended].tolist()
         self.counters.episodes += len(returns)
         return returns
 
@@ -377,40 +370,59 @@ class Dojo:
         }
 
     # checkpoints --------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {
-            "format": 1,
-            "counters": asdict(self.counters),
-            "history": list(self.history),
-            "q_network": self.q_network.state_dict(),
-            "loss": self.loss.state_dict(),  # online and target network parameters
-            "exploration": self.exploration.state_dict(),  # epsilon
-            "optimizer": self.optimizer.state_dict(),
-            "target_updater": {"counter": getattr(self.target_updater, "counter", None)},
-            "replay_buffer": self.replay_buffer.state_dict(),
-            "rng": rng_state(self.env),
-        }
+    def checkpoint(self, extra: dict) -> Checkpoint:
+        """The Dojo's state as one TorchRL :class:`~torchrl.checkpoint.Checkpoint`: counters,
+        evaluation history, Q-network (its normaliser included), loss (online and target
+        networks), exploration (epsilon), optimizer, target updater, replay buffer (contents and
+        cursor), the random generators (torch, numpy and python through ``GlobalRNGState``; the
+        env's through its ``rng_state()``) and ``extra`` (JSON; filled in place on loading)."""
+        state_dict = StateDictCheckpointAdapter()  # the buffer's own dump/load is not needed
+        checkpoint = Checkpoint(
+            format="archive",
+            counters=State(lambda: asdict(self.counters), self._set_counters),
+            history=self.history,  # JSON, restored in place
+            q_network=self.q_network,
+            loss=self.loss,
+            exploration=self.exploration,
+            optimizer=self.optimizer,
+            target_updater=self.target_updater,
+            rng=State(self._rng_state, self._defer_rng_state),
+            extra=extra,
+        )
+        return checkpoint.register("replay_buffer", self.replay_buffer, adapter=state_dict)
 
-    def load_state_dict(self, state: dict) -> None:
-        self.counters = Counters(**state["counters"])
-        self.history = list(state["history"])
-        self.q_network.load_state_dict(state["q_network"])
-        self.loss.load_state_dict(state["loss"])
-        self.exploration.load_state_dict(state["exploration"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        if state["target_updater"]["counter"] is not None:
-            self.target_updater.counter = state["target_updater"]["counter"]
-        self.replay_buffer.load_state_dict(state["replay_buffer"])
-        self._pending_rng = state["rng"]  # applied when train() has built its collector
+    def _set_counters(self, state: dict) -> None:
+        self.counters = Counters(**state)
         self._saved_iteration = self.counters.iteration
 
+    def _rng_state(self) -> dict:
+        state = {"global": GlobalRNGState().state_dict()}
+        if hasattr(self.env, "rng_state"):  # an env with its own episode generator
+            state["env"] = self.env.rng_state()
+        return state
+
+    def _defer_rng_state(self, state: dict) -> None:
+        self._pending_rng = state  # applied when train() has built its collector
+
+    def _set_rng_state(self, state: dict) -> None:
+        GlobalRNGState().load_state_dict(state["global"])
+        if "env" in state:
+            self.env.set_rng_state(state["env"])
+
     def save_checkpoint(self, extra: dict | None = None) -> Path | None:
-        if self.checkpoints is None:
+        """Checkpoint now (the newest ``keep_checkpoints`` are kept). A directory that cannot be
+        written stops training (:meth:`request_stop` naming it) with the older checkpoints
+        kept."""
+        if self.checkpoints is None or self._checkpoint_failed:
             return None
         started = time.perf_counter()
-        state = self.state_dict()
-        state["extra"] = {**self.checkpoint_extra, **(extra or {})}
-        path = self.checkpoints.save(state, self.counters.iteration)
+        checkpoint = self.checkpoint({**self.checkpoint_extra, **(extra or {})})
+        try:
+            path = self.checkpoints.save(checkpoint, self.counters.iteration)
+        except CheckpointsError as error:
+            self._checkpoint_failed = True
+            self.request_stop(str(error))
+            return None
         self._saved_iteration = self.counters.iteration
         self._add_time("checkpoint", time.perf_counter() - started)
         log.info(
@@ -423,8 +435,9 @@ class Dojo:
         return path
 
     def load_checkpoint(self, path: str | Path) -> dict:
-        state = CheckpointManager.load(path)
-        self.load_state_dict(state)
+        """Restore the checkpoint ``path``; return its ``extra``."""
+        extra: dict = {}
+        self.checkpoint(extra).load(path, map_location="cpu")
         log.info(
             "resumed from %s at iteration %d (%d frames, buffer %d)",
             path,
@@ -432,7 +445,7 @@ class Dojo:
             self.counters.frames,
             len(self.replay_buffer),
         )
-        return state
+        return extra
 
     # logging ------------------------------------------------------------------------------
     def _open_logs(self) -> None:

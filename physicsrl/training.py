@@ -3,8 +3,14 @@
 Every rank builds the environment (its simulator is coordinated); the leader trains the
 :class:`~physicsrl.dojo.Dojo`, compares the greedy policy with the task's baselines on the
 held-out seeds and writes ``summary.txt``/``summary.json`` in the run directory; followers
-serve the simulation. ``resume=true`` continues the newest run of this config, ``resume=<run
-dir>`` that run (in its directory). SIGINT/SIGTERM checkpoint and stop cleanly.
+serve the simulation. SIGINT/SIGTERM checkpoint and stop cleanly.
+
+``resume=true`` continues the newest run beside this command's run directory, ``resume=<run
+dir>`` that run, from its newest readable checkpoint; the continuation is written into the
+resumed run (checkpoints, events, evaluations, log, summary), and this command's own run
+directory keeps only its config, its log and ``resumed.txt`` naming the run it continued. A
+checkpoint directory that cannot be written, or a resume without a readable checkpoint, is one
+line (exit status 2) before any environment is built.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import torch
 from mpi4py import MPI
 
 from physicsrl import builders
-from physicsrl.checkpoint import CheckpointManager, find_run
+from physicsrl.checkpoint import Checkpoints, find_run
 from physicsrl.cli.bench import format_table
 from physicsrl.config import TrainConfig, as_dict, typed
 from physicsrl.dojo import Dojo
@@ -32,6 +38,8 @@ from physicsrl.evaluation import compare
 from physicsrl.launch import output_dir
 
 log = logging.getLogger("physicsrl.train")
+
+RESUMED = "resumed.txt"  # in the run directory of a command that continued another run
 
 
 def train(cfg) -> None:
@@ -45,14 +53,18 @@ def train(cfg) -> None:
     random.seed(config.seed)
     run_dir = output_dir()
 
-    # where to continue from: decided by the leader, known to all
-    resume_dir, error = None, None
-    if leader and config.resume not in (None, False):
+    # where to continue from, and whether checkpoints can be written: the leader decides
+    resume, error = None, None
+    if leader:
         try:
-            resume_dir = find_run(str(config.resume), run_dir.parent)
-        except FileNotFoundError as problem:
+            if config.resume not in (None, False):
+                resume_dir = find_run(str(config.resume), run_dir.parent)
+                resume = Checkpoints(resume_dir / "checkpoints", 1).newest_readable()
+            log_dir = run_dir if resume is None else resume.parent.parent
+            Checkpoints(log_dir / "checkpoints", config.checkpoint.keep).check_writable()
+        except OSError as problem:
             error = str(problem)
-    resume_dir, error = comm.bcast((resume_dir, error), root=0)
+    resume, error = comm.bcast((resume, error), root=0)
     if error:
         if leader:
             print(f"error: {error}", file=sys.stderr)
@@ -65,7 +77,7 @@ def train(cfg) -> None:
     make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     with environments(make_env, config.mpi.ranks_per_env, seed=config.seed) as env:
         if env is not None:  # world rank 0: the learner
-            stopped = train_on_leader(config, env, run_dir, resume_dir)
+            stopped = train_on_leader(config, env, run_dir, resume)
     if leader and stopped:
         raise SystemExit(130 if "SIGINT" in stopped else 143 if "SIGTERM" in stopped else 1)
 
@@ -120,11 +132,13 @@ def baselines(env, config: TrainConfig, seeds) -> dict:
     return task.baselines(env, list(seeds), config.seed) if task else {}
 
 
-def train_on_leader(config: TrainConfig, env, run_dir: Path, resume_dir: Path | None) -> str | None:
-    """Train, print the summary, write ``summary.json``; return the stop reason, if any."""
+def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None) -> str | None:
+    """Train (continuing from the checkpoint ``resume``, in its run directory), print the
+    summary, write ``summary.json``; return the stop reason, if any."""
     task = task_of(env)
     coordinator = task.coordinator if task else None  # group 0's: its time is logged
     ranks, per_env = MPI.COMM_WORLD.size, config.mpi.ranks_per_env
+    log_dir = run_dir if resume is None else resume.parent.parent
     log.info(
         "%d environment%s of %d rank%s (%d ranks); run directory %s; training to iteration %d",
         ranks // per_env,
@@ -132,20 +146,22 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume_dir: Path | 
         per_env,
         "s" if per_env > 1 else "",
         ranks,
-        resume_dir or run_dir,
+        log_dir,
         config.iterations,
     )
-    log_dir = resume_dir or run_dir
-    if log_dir != run_dir:  # a resumed run keeps writing its own log too
+    if log_dir != run_dir:  # the resumed run keeps its own log; this command's says where
         handler = logging.FileHandler(log_dir / "train.log")
         handler.setFormatter(
             logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
         )
         logging.getLogger().addHandler(handler)
+        (run_dir / RESUMED).write_text(
+            f"this command resumed {log_dir} from {resume.name}: its checkpoints, events, "
+            f"evaluations and summary are written there\n"
+        )
     dojo = make_dojo(config, env, coordinator, log_dir)
-    if resume_dir is not None:
-        state = dojo.load_checkpoint(CheckpointManager(resume_dir / "checkpoints").latest())
-        extra = state.get("extra", {})
+    if resume is not None:
+        extra = dojo.load_checkpoint(resume)
         check_environments(extra.get("environments", 1), n_environments(env))
         warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
     started = time.perf_counter()

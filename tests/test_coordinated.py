@@ -12,6 +12,7 @@ from physicsrl.coordinated import (
     parallel,
     randint,
     random,
+    wait_for,
 )
 
 
@@ -51,6 +52,18 @@ def test_single_rank_calls_run_locally_and_return():
     assert recorder.calls == [21, 1]
     assert coordinator._sequence == 0  # one rank: nothing was sent
     assert Recorder.record.__name__ == "record" and Recorder.record.__doc__ == "Record a value."
+
+
+@pytest.mark.parametrize("spin_s, idle_calls", [(0.0, 4), (60.0, 0)])
+def test_wait_for_polls_until_ready_and_calls_idle_only_while_sleeping(spin_s, idle_calls):
+    """Five polls find nothing, the sixth a message: all six are made; without a spin phase
+    the four polls after the first are separated by sleeps, each followed by ``idle()``;
+    within a long spin phase there is no sleep."""
+    polls = iter([False] * 5 + [True, "never polled"])
+    idle = []
+    wait_for(lambda: next(polls), spin_s, 1e-4, oversubscribed=True, idle=lambda: idle.append(1))
+    assert next(polls) == "never polled"
+    assert len(idle) == idle_calls
 
 
 def test_misuse_raises_clear_errors():

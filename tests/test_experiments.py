@@ -6,8 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import torch
-
+from physicsrl.checkpoint import checkpoint_file, read
 from tests.conftest import ROOT, SMALL_ATP
 
 TRAIN = str(Path(sys.executable).with_name("physicsrl-train"))
@@ -76,9 +75,8 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
     for job, lr in (("0", 1e-3), ("1", 3e-4)):
-        checkpoint = max((sweep / job / "checkpoints").glob("ckpt_*.pt"))
-        state = torch.load(checkpoint, weights_only=False)
-        assert state["optimizer"]["param_groups"][0]["lr"] == lr
+        optimizer = read(checkpoint_file(sweep / job), ["optimizer"])["optimizer"]
+        assert optimizer["param_groups"][0]["lr"] == lr
     table = tmp_path / "table.csv"
     subprocess.run(
         [sys.executable, str(ROOT / "experiments" / "collect.py"), str(sweep), "--csv", str(table)],
@@ -199,7 +197,7 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
 
 
 def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path):
-    """The stored ATP policy (experiments/results/atp_agent.pt) on the first held-out seed, on
+    """The stored ATP policy (experiments/results/atp_agent.torchrl) on the first held-out seed, on
     2 MPI ranks: the return, success and shocks of that seed's row in atp_agent_eval.csv (made
     on 1 rank), so the table is reproducible and does not depend on the number of ranks."""
     from tests.conftest import MPIEXEC
@@ -207,7 +205,7 @@ def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path):
     results = ROOT / "experiments" / "results"
     out = tmp_path / "eval"
     command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
-    command += [f"run={results / 'atp_agent.pt'}", "seeds=1", "baselines=false", "gif=false"]
+    command += [f"run={results / 'atp_agent.torchrl'}", "seeds=1", "baselines=false", "gif=false"]
     command += ["curve=false", f"hydra.run.dir={out}"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert result.returncode == 0, result.stderr

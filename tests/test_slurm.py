@@ -51,7 +51,7 @@ def test_sweep_of_two_mpi_jobs(tmp_path):
         directory = tmp_path / "sweep" / job
         summary = json.loads((directory / "summary.json").read_text())["summary"]
         assert summary["iteration"] == 3
-        assert (directory / "checkpoints" / "ckpt_00000003.pt").is_file()
+        assert (directory / "checkpoints" / "ckpt-000000000003.torchrl").is_file()
         log = (directory / "train.log").read_text()
         assert "2 ranks" in log  # the two tasks formed one MPI job
     configs = [(tmp_path / "sweep" / j / ".hydra" / "config.yaml").read_text() for j in "01"]

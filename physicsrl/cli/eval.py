@@ -19,30 +19,14 @@ from physicsrl.cli import command
 def check(cfg) -> None:
     from omegaconf import OmegaConf
 
+    from physicsrl.checkpoint import checkpoint_file
     from physicsrl.envs.groups import check_layout
     from physicsrl.launch import launched_size
 
     check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
-    checkpoint(str(cfg.run))
-
-
-def checkpoint(run: str) -> Path:
-    """The checkpoint file of ``run`` (a file, or the latest in a run directory)."""
-    import zipfile
-
-    from physicsrl.checkpoint import CheckpointManager
-
-    path = Path(run).expanduser()
-    if path.is_file():
-        if not zipfile.is_zipfile(path):  # torch.save writes a zip archive
-            raise ValueError(f"run={run} is not a checkpoint file (torch.save's zip format)")
-        return path
-    latest = CheckpointManager(path / "checkpoints").latest()
-    if latest is None:
-        raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
-    return latest
+    checkpoint_file(str(cfg.run))
 
 
 def main() -> None:
@@ -55,14 +39,14 @@ def evaluate(cfg) -> None:
     from omegaconf import OmegaConf
 
     from physicsrl import builders
-    from physicsrl.checkpoint import CheckpointManager
+    from physicsrl.checkpoint import checkpoint_file, read
     from physicsrl.config import TrainConfig, typed
     from physicsrl.envs.groups import environments
 
     comm = MPI.COMM_WORLD
     leader = comm.rank == 0
-    path = checkpoint(str(cfg.run))
-    state = CheckpointManager.load(path) if leader else None
+    path = checkpoint_file(str(cfg.run))
+    state = read(path, ["q_network", "counters", "extra"]) if leader else None
     config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
     train_cfg = OmegaConf.merge(
         OmegaConf.structured(TrainConfig),

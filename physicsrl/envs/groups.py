@@ -31,8 +31,8 @@ group ends the whole job through its coordinator (``MPI.Abort``).
 
 from __future__ import annotations
 
+import functools
 import os
-import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -44,7 +44,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl import timeit
 from torchrl.envs import EnvBase
 
-from physicsrl.coordinated import Coordinator
+from physicsrl.coordinated import Coordinator, wait_for
 
 __all__ = ["GroupedEnv", "Layout", "environments", "member_seed", "serve", "spread_episodes"]
 
@@ -151,20 +151,15 @@ def _run(member: _Member, command: int, argument):
 
 def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: float = 0.002):
     """Answer world rank 0's requests for ``env`` (a group leader other than rank 0) until it
-    sends close; return the exit status it sends. Between requests the rank polls: busily for
-    ``spin_s`` seconds (yielding the core when ranks outnumber cores), then sleeping at most
-    ``max_sleep_s`` between polls, so that it leaves the core to a learner that trains."""
+    sends close; return the exit status it sends. Between requests the rank polls as a
+    coordinator's follower does (:func:`~physicsrl.coordinated.wait_for`: busily for ``spin_s``
+    seconds, then sleeping at most ``max_sleep_s`` between polls), so that it leaves the core
+    to a learner that trains."""
     member = _Member(leaders.rank, env, None)
     oversubscribed = leaders.Get_size() > len(os.sched_getaffinity(0))
+    request = functools.partial(leaders.Iprobe, source=0, tag=_REQUEST)
     while True:
-        spin_until, sleep = time.perf_counter() + spin_s, 1e-5
-        while not leaders.Iprobe(source=0, tag=_REQUEST):
-            if time.perf_counter() < spin_until:
-                if oversubscribed:
-                    os.sched_yield()
-                continue
-            time.sleep(sleep)
-            sleep = min(2 * sleep, max_sleep_s)
+        wait_for(request, spin_s, max_sleep_s, oversubscribed)
         command, argument = leaders.recv(source=0, tag=_REQUEST)
         if command == _CLOSE:
             return int(argument)

@@ -1,0 +1,177 @@
+"""Checkpoints that cannot be written or read: a truncated newest checkpoint is skipped on
+resume (and a resume without a readable one is one line), a checkpoint directory that cannot
+be written is found when the run starts, a full disk during training stops the run cleanly with
+its older checkpoints intact and no temporary files, and a resume into another directory writes
+only into the resumed run.
+
+The runs train the toy chain of ``tests/mpi_scripts/train_toy_env.py`` for a few iterations.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from physicsrl.checkpoint import Checkpoints, damage, read
+from tests.conftest import MPIEXEC, ROOT
+from tests.test_train import TOY, TRAIN, checkpoint_name, run, same, start_and_wait_for
+
+SHORT = [
+    f"+env.factory={TOY}:make_env",
+    "iterations=6",
+    "collector.frames_per_batch=8",
+    "optim.learning_starts=16",
+    "optim.updates_per_batch=1",
+    "eval.every=0",
+    "eval.baselines=false",
+    "checkpoint.every=2",
+    "checkpoint.keep=3",
+    "logger.progress=false",
+    "logger.tensorboard=false",
+]
+
+
+def truncate(path, fraction: float = 0.5) -> None:
+    path.write_bytes(path.read_bytes()[: int(path.stat().st_size * fraction)])
+
+
+def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_run(tmp_path):
+    """The newest of 3 checkpoints truncated: one warning naming it, the run resumes from the
+    one before in its own directory and reproduces the lost checkpoint bit for bit; the
+    resuming command's directory holds only its config, its log and ``resumed.txt``. All three
+    truncated: one line naming them, exit status 2."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    result = run([TRAIN, *SHORT, f"hydra.run.dir={first}"], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    checkpoints = Checkpoints(first / "checkpoints", keep=3)
+    assert [p.name for p in checkpoints.paths()] == [checkpoint_name(i) for i in (2, 4, 6)]
+    newest = checkpoints.latest()
+    original = read(newest)
+    truncate(newest)
+    assert damage(newest) is not None
+
+    result = run([TRAIN, *SHORT, f"hydra.run.dir={second}", f"resume={first}"], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    warnings = [line for line in result.stdout.splitlines() if "unreadable checkpoint" in line]
+    assert len(warnings) == 1 and str(newest) in warnings[0], result.stdout
+    log = (first / "train.log").read_text()
+    assert f"resumed from {checkpoints.directory / checkpoint_name(4)} at iteration 4" in log
+    repeated = read(newest)
+    for name in ("q_network", "loss", "optimizer", "replay_buffer", "exploration", "history"):
+        assert same(repeated[name], original[name]), name
+    assert {k: v for k, v in repeated["counters"].items() if k != "time_s"} == {
+        k: v for k, v in original["counters"].items() if k != "time_s"
+    }
+    assert sorted(p.name for p in second.iterdir()) == [".hydra", "resumed.txt", "train.log"]
+    assert str(first) in (second / "resumed.txt").read_text()
+
+    for path in checkpoints.paths():
+        truncate(path, 0.9)
+    result = run(
+        [TRAIN, *SHORT, f"hydra.run.dir={tmp_path / 'third'}", f"resume={first}"], tmp_path
+    )
+    assert result.returncode == 2
+    lines = result.stderr.splitlines()
+    assert lines == [
+        f"error: no readable checkpoint in {checkpoints.directory}: "
+        + ", ".join(checkpoint_name(i) for i in (6, 4, 2))
+    ], result.stdout + result.stderr
+    assert "Traceback" not in result.stdout
+
+
+def test_a_checkpoint_directory_that_cannot_be_written_is_one_line_at_the_start(tmp_path):
+    """``checkpoints`` taken by a regular file (unwritable even for root): under 2 ranks, one
+    line naming it, exit status 2, before any environment is built or iteration run."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "checkpoints").write_text("not a directory")
+    command = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"hydra.run.dir={run_dir}"]
+    result = run(command, tmp_path)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stderr.splitlines() == [
+        f"error: cannot write checkpoints to {run_dir / 'checkpoints'}: File exists"
+    ]
+    assert "environment" not in (run_dir / "train.log").read_text()  # nothing was built
+
+
+def test_a_full_disk_stops_training_with_the_older_checkpoints_intact(tmp_path):
+    """Saves fail from iteration 6 on (a file-size limit of half a checkpoint): the run stops
+    there naming the directory, checkpoints 2 and 4 are intact and nothing else is left."""
+    script = ROOT / "tests" / "mpi_scripts" / "dojo_full_disk.py"
+    result = subprocess.run(
+        [sys.executable, str(script), str(tmp_path / "run")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=script.parent,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    outcome = json.loads(result.stdout.splitlines()[-1])
+    directory = tmp_path / "run" / "checkpoints"
+    assert outcome["stopped"] == f"cannot write checkpoints to {directory}: File too large"
+    assert outcome["iteration"] == 6
+    assert outcome["files"] == [checkpoint_name(2), checkpoint_name(4)]  # no temporary files
+    assert all(damage(directory / name) is None for name in outcome["files"])
+    assert read(directory / checkpoint_name(4), ["counters"])["counters"]["iteration"] == 4
+
+
+@pytest.mark.skipif(
+    os.geteuid() == 0 and not shutil.which("capsh"), reason="root writes anywhere without capsh"
+)
+def test_a_checkpoint_directory_made_read_only_during_training_stops_the_run(tmp_path):
+    """``chmod 555 checkpoints`` once a checkpoint is written (as root, with the capability
+    that overrides file permissions dropped): the run stops at its next save, exit status 1,
+    one line naming the directory and no traceback; its checkpoints are intact."""
+    run_dir = tmp_path / "run"
+    arguments = [TRAIN, *SHORT, "iterations=100000", f"hydra.run.dir={run_dir}"]
+    if os.geteuid() == 0:
+        arguments = ["capsh", "--drop=cap_dac_override", "--", "-c", shlex.join(arguments)]
+    directory = run_dir / "checkpoints"
+    process = start_and_wait_for(arguments, tmp_path, directory / checkpoint_name(2))
+    directory.chmod(0o555)
+    try:
+        output, _ = process.communicate(timeout=120)
+    finally:
+        directory.chmod(0o755)
+    assert process.returncode == 1, output
+    assert "Traceback" not in output
+    stops = [line for line in output.splitlines() if "stopped at iteration" in line]
+    assert len(stops) == 1, output
+    assert stops[0].endswith(f"cannot write checkpoints to {directory}: Permission denied")
+    checkpoints = Checkpoints(directory, keep=3).paths()
+    assert checkpoints and all(damage(path) is None for path in checkpoints)
+
+
+def test_read_returns_the_states_the_dojo_saved(tmp_path):
+    """``read`` of a saved checkpoint: the Q-network's tensors and the JSON values as saved."""
+    sys.path.insert(0, str(TOY.parent))
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl import builders
+    from physicsrl.config import Network
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+
+    env = ToyChainEnv(Coordinator(), length=3)
+    dojo = Dojo(
+        builders.make_q_network(env, Network(hidden=[4])),
+        env,
+        log_dir=tmp_path,
+        tensorboard=False,
+        checkpoint_extra={"config": {"seed": 7}},
+        progress=False,
+    )
+    path = dojo.save_checkpoint()
+    state = read(path)
+    assert state["extra"] == {"config": {"seed": 7}} and state["history"] == []
+    assert state["counters"]["iteration"] == 0
+    for key, value in dojo.q_network.state_dict().items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(state["q_network"][key], value), key
