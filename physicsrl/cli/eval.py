@@ -26,6 +26,29 @@ def check(cfg) -> None:
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
     checkpoint(str(cfg.run))
+    run_config({}, list(cfg.overrides))  # the keys and types; the task groups come with the run
+
+
+def run_config(stored: dict, overrides: list[str]):
+    """The training config of the evaluated run: ``stored`` (its checkpoint's) changed by
+    ``overrides``, typed; ValueError naming the key."""
+    from omegaconf import OmegaConf
+
+    from physicsrl.cli.command import one_line
+    from physicsrl.config import TrainConfig, typed
+
+    changes = []
+    for override in overrides:
+        try:
+            changes.append(OmegaConf.from_dotlist([override]))
+        except Exception as error:  # noqa: BLE001 - YAML's parser errors
+            raise ValueError(f"overrides: cannot parse {override!r}") from error
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(TrainConfig), stored, *changes)
+        typed(merged)
+    except Exception as error:  # noqa: BLE001 - OmegaConf's errors name the key
+        raise ValueError(f"overrides: {one_line(error)}") from error
+    return merged
 
 
 def checkpoint(run: str) -> Path:
@@ -52,11 +75,12 @@ def main() -> None:
 def evaluate(cfg) -> None:
     """Every rank: rebuild the run's env from its stored config; the leader evaluates."""
     from mpi4py import MPI
-    from omegaconf import OmegaConf
 
     from physicsrl import builders
     from physicsrl.checkpoint import CheckpointManager
-    from physicsrl.config import TrainConfig, typed
+    from physicsrl.cli.command import refuse_config
+    from physicsrl.cli.train import check_run
+    from physicsrl.config import typed
     from physicsrl.envs.groups import environments
 
     comm = MPI.COMM_WORLD
@@ -64,11 +88,11 @@ def evaluate(cfg) -> None:
     path = checkpoint(str(cfg.run))
     state = CheckpointManager.load(path) if leader else None
     config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
-    train_cfg = OmegaConf.merge(
-        OmegaConf.structured(TrainConfig),
-        OmegaConf.create(config),
-        OmegaConf.from_dotlist(list(cfg.overrides)),
-    )
+    try:  # as physicsrl-train checks its config, before anything is built
+        train_cfg = run_config(config, list(cfg.overrides))
+        check_run(train_cfg)
+    except ValueError as error:
+        refuse_config(error)
     eval_cfg = typed(cfg)
     make_env = lambda coordinator: builders.make_env(train_cfg, coordinator)  # noqa: E731
     with environments(make_env, eval_cfg.mpi.ranks_per_env) as env:
