@@ -250,6 +250,7 @@ class EvalConfig:
     gif: bool = True
     gif_seed: Any = None  # null: the first seed the greedy policy succeeds on (else the first)
     fps: float = 1.5
+    fields: bool = False  # u (and w) of the GIF's episode as a VTX series (ParaView) and a PNG
     curve: bool = True  # learning_curve.png from the run's TensorBoard events
     overrides: list[str] = field(default_factory=list)  # changes to the run's config
 

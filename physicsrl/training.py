@@ -25,7 +25,7 @@ from physicsrl import builders
 from physicsrl.checkpoint import CheckpointManager, find_run
 from physicsrl.cli.bench import format_table
 from physicsrl.config import TrainConfig, as_dict, typed
-from physicsrl.dojo import Dojo
+from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.groups import GroupedEnv, environments
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
@@ -149,7 +149,11 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume_dir: Path | 
         check_environments(extra.get("environments", 1), n_environments(env))
         warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
     started = time.perf_counter()
-    summary = dojo.train(config.iterations)
+    try:
+        summary = dojo.train(config.iterations)
+    except NonFiniteTraining as error:
+        print(f"error: {error}", file=sys.stderr, flush=True)
+        raise SystemExit(1) from None
     summary["wall_s"] = time.perf_counter() - started
     table = []
     if dojo.history:  # a stop request skips the baselines: it should end quickly
