@@ -430,3 +430,25 @@ def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
     distance = np.sqrt(((u - 1.0) ** 2).mean(axis=1))
     assert distance[0] > 0 and np.all(np.diff(distance) < 0), distance
     assert (out / "fields.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_checkpoint(tmp_path):
+    """A learning rate of 1e30 (finite, so accepted) blows the weights up at the second update
+    (iteration 4, the first with learning_starts frames): under 2 ranks every rank exits
+    non-zero, the leader prints one line naming the iteration and what became non-finite, and
+    the checkpoint of iteration 2 stays the newest, with finite weights."""
+    from physicsrl.checkpoint import CheckpointManager
+
+    run_dir = tmp_path / "run"
+    result = run(command(run_dir, "optim.lr=1e30", "checkpoint.every=2"), tmp_path)
+    assert result.returncode == 1, result.stdout + result.stderr
+    errors = [line for line in result.stderr.splitlines() if "error" in line.lower()]
+    assert errors == [
+        "error: iteration 4, update 2: the loss became nan; training stopped "
+        "(the checkpoint of iteration 2 is kept)"
+    ], result.stderr
+    assert "Traceback" not in result.stderr
+    latest = CheckpointManager(run_dir / "checkpoints").latest()
+    assert latest.name == "ckpt_00000002.pt"
+    state = CheckpointManager.load(latest)
+    assert all(torch.isfinite(v).all() for v in state["loss"].values() if v.is_floating_point())

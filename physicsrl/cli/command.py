@@ -9,6 +9,7 @@ command under ``mpiexec``.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from collections.abc import Callable
 from typing import NoReturn
@@ -83,37 +84,46 @@ def compose(config_name: str, overrides: list[str]):
 
 
 def validate_or_exit(config_name: str, overrides: list[str], check: Callable) -> None:
-    """Compose the config, run every range check of its schema and ``check(cfg)`` on this rank;
-    on error the leader prints one line and every rank exits with status 2 (all ranks see the
-    same config, so no rank waits)."""
+    """Compose the config of the command line, run every range check of its schema and
+    ``check(cfg)`` on this rank, for the job or, with ``-m``, every job of the sweep (Hydra's
+    basic sweeper: the product of the comma-separated values) before any starts; nothing with
+    Hydra's print-only flags. On error the leader prints one line (naming the sweep's job) and
+    every rank exits with status 2 (all ranks see the same config, so no rank waits)."""
+    flags = {o for o in overrides if o.startswith("-")}
+    if not flags <= MULTIRUN:
+        return
+    arguments = [o for o in overrides if o not in flags]
     try:
-        validate(config_name, overrides, check)
+        jobs = sweep_jobs(arguments) if flags else [arguments]
+        for number, job in enumerate(jobs, 1):
+            try:
+                validate(config_name, job, check)
+            except ValueError as error:
+                if not flags:
+                    raise
+                chosen = " ".join(o for o in job if not o.startswith("hydra"))
+                raise ValueError(
+                    f"{error.args[0]} (sweep job {number} of {len(jobs)}: {chosen})"
+                ) from error
     except ValueError as error:
         refuse_config(error)
 
 
-def validate_sweep_or_exit(config_name: str, overrides: list[str], check: Callable) -> None:
-    """:func:`validate_or_exit` for every job of a ``-m`` sweep (Hydra's basic sweeper: the
-    product of the comma-separated values), before any job starts; the line names the job."""
-    try:
-        jobs = sweep_jobs(overrides)
-    except ValueError as error:
-        refuse_config(error)
-    for number, job in enumerate(jobs, 1):
-        try:
-            validate(config_name, job, check)
-        except ValueError as error:
-            chosen = " ".join(o for o in job if not o.startswith("hydra"))
-            refuse_config(f"{error.args[0]} (sweep job {number} of {len(jobs)}: {chosen})")
+def refuse_config(error: ValueError | str) -> NoReturn:
+    """The leader prints ``error: bad config: <one line>``; every rank exits with status 2."""
+    message = error.args[0] if isinstance(error, ValueError) and error.args else str(error)
+    refuse(f"bad config: {' '.join(str(message).split())}")
 
 
 def validate(config_name: str, overrides: list[str], check: Callable) -> None:
-    """Compose, type and ``check`` the config of ``overrides``; ValueError with one line."""
+    """Compose, type (a config with a schema) and ``check`` the config of ``overrides``;
+    ValueError with one line."""
     from physicsrl.config import typed
 
     try:
         cfg = compose(config_name, overrides)
-        typed(cfg)
+        if dataclasses.is_dataclass(OmegaConf.get_type(cfg)):
+            typed(cfg)
         check(cfg)
     except ValueError:
         raise
@@ -133,12 +143,6 @@ def sweep_jobs(overrides: list[str]) -> list[list[str]]:
         raise ValueError(one_line(error)) from error
 
 
-def refuse_config(error: ValueError | str) -> NoReturn:
-    """The leader prints ``error: bad config: <one line>``; every rank exits with status 2."""
-    message = error.args[0] if isinstance(error, ValueError) and error.args else str(error)
-    refuse(f"bad config: {' '.join(str(message).split())}")
-
-
 def main(config_name: str, task: str, check: Callable, pairs: bool = False) -> None:
     """Launch (``mpi.ranks``), add the task's pairs to ``env=`` (``pairs``), validate (every job
     of a ``-m`` sweep; not with Hydra's print-only flags), then ``task(cfg)`` on every rank under
@@ -150,9 +154,5 @@ def main(config_name: str, task: str, check: Callable, pairs: bool = False) -> N
 
     overrides = with_pairs(overrides) if pairs else overrides
     register()
-    flags = {o for o in overrides if o.startswith("-")}
-    if not flags:
-        validate_or_exit(config_name, overrides, check)
-    elif flags <= MULTIRUN:
-        validate_sweep_or_exit(config_name, [o for o in overrides if o not in flags], check)
+    validate_or_exit(config_name, overrides, check)
     run_hydra(config_name, load_object(task), overrides)
