@@ -24,9 +24,10 @@ def check_task(cfg) -> None:
 
 
 def check_run(cfg) -> None:
-    """The task groups as :func:`physicsrl.envs.make_env` will read them, the observation
-    inside the task's domain, the network's inputs among the env's keys, and the memory of the
-    network and the replay buffer (:func:`~physicsrl.config.check_memory`); nothing is built.
+    """The task groups as :func:`physicsrl.envs.make_env` will read them, the reward's events
+    among the task's, the observation inside the task's domain, the network's inputs among the
+    env's keys, and the memory of the network and the replay buffer
+    (:func:`~physicsrl.config.check_memory`); nothing is built.
     An env from ``env.factory`` checks its own settings (its keys and sizes are not known
     before it is built: each network input counts as one number)."""
     from physicsrl.config import check_memory, typed
@@ -41,23 +42,28 @@ def check_run(cfg) -> None:
 
     groups = plain(cfg)
     observation = build(*OBSERVATIONS.lookup(groups["observation"]), "observation")
-    build(*REWARDS.lookup(groups["reward"]), "reward")
+    reward = build(*REWARDS.lookup(groups["reward"]), "reward")
     task, settings = TASKS.lookup(groups["env"])
     task_config = build(task.Config, settings, "env")
+    if reward.events - task.events:
+        raise ValueError(
+            f"reward={reward.name} does not fit the {task.name} task: it reads the events "
+            f"{sorted(reward.events - task.events)}, which the task does not report"
+        )
     mesh = getattr(task_config, "mesh", None)
     if isinstance(mesh, SquareMesh) and observation.outside(mesh.extent):
         far = max(max(abs(x), abs(y)) for x, y in observation.outside(mesh.extent))
         raise ValueError(
-            f"observation={observation.name} does not fit env={task.name}: it reads at points up "
-            f"to {far:g} from the origin, outside the domain [-{mesh.extent:g}, "
-            f"{mesh.extent:g}]^2 (env.mesh.extent)"
+            f"observation={observation.name} does not fit the {task.name} task: it reads at "
+            f"points up to {far:g} from the origin, outside the domain "
+            f"[-{mesh.extent:g}, {mesh.extent:g}]^2 (env.mesh.extent)"
         )
     inputs = env_inputs(task, observation)
     unknown = [key for key in config.agent.network.inputs if key not in inputs]
     if unknown:
         raise ValueError(
-            f"agent.network.inputs: {unknown[0]!r} is not an observation key of env={task.name} "
-            f"(its keys: {', '.join(inputs)})"
+            f"agent.network.inputs: {unknown[0]!r} is not an observation key of the "
+            f"{task.name} task (its keys: {', '.join(inputs)})"
         )
     check_memory(config, inputs, task.n_actions)
 
