@@ -5,8 +5,10 @@ Rebuilds the env and the Q-network from the config stored in the checkpoint (eve
 the env; the leader evaluates), prints a table (return, success, shocks, episode length; one
 episode per seed), writes ``eval.csv`` (per seed) and ``eval_summary.csv`` (means) and, for the
 physics tasks, ``episode.gif``: the field after the reset and after each decision, catheter
-electrodes, shocks marked (by default of the first seed whose greedy episode succeeds). Files
-go to this command's run directory.
+electrodes, shocks marked (by default of the first seed whose greedy episode succeeds); with
+``fields=true`` the fields of that episode as a VTX series for ParaView (``fields.bp``) and a PNG
+of u drawn from the series read back (``fields.png``). Files go to this command's run
+directory.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ if TYPE_CHECKING:  # the simulators import MPI, which must wait for the mpi.rank
 
 
 def check(cfg) -> None:
+    import importlib.util
+
     from omegaconf import OmegaConf
 
     from physicsrl.envs.groups import check_layout
@@ -31,6 +35,8 @@ def check(cfg) -> None:
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
     checkpoint(str(cfg.run))
+    if cfg.fields and importlib.util.find_spec("adios2") is None:
+        raise ValueError("fields=true reads the series back with adios2: pip install adios2")
     run_config({}, list(cfg.overrides))  # the keys and types; the task groups come with the run
 
 
