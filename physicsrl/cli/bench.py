@@ -16,7 +16,6 @@ import math
 import shlex
 import sys
 
-from physicsrl.cli.command import validate_or_exit
 from physicsrl.launch import output_dir, relaunch, run_hydra
 
 BENCHMARKS = {
@@ -84,6 +83,8 @@ def main() -> None:
         choices = ", ".join(BENCHMARKS)
         raise SystemExit(f"error: unknown benchmark {name!r}; choose one of {choices}")
     relaunch(overrides)
+    from physicsrl.cli.command import validate_or_exit
+
     module = importlib.import_module(f"physicsrl.bench.{name}")
     settings = getattr(module, "SETTINGS", {})
     validate_or_exit(f"bench_{name}", overrides, lambda cfg: check_settings(cfg, settings))
