@@ -27,6 +27,8 @@ from physicsrl.envs.config import integer, number, positive
 
 HELD_OUT_START = 1_000_000_000
 SEEDS_PER_RUN = 1_000_000
+# float32 parameters, held 5 times: the online and target networks, the gradient, Adam's moments
+BYTES_PER_PARAMETER = 4 * 5
 
 
 def train_seed(seed: int, iteration: int) -> int:
@@ -229,8 +231,11 @@ class TrainConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     eval: Evaluation = field(default_factory=Evaluation)
+    # the cap on the Q-network's and the replay buffer's estimated bytes (check_memory)
+    max_memory_gb: float = 16.0
 
     def __post_init__(self):
+        positive("max_memory_gb", self.max_memory_gb)
         integer("seed", self.seed, 0)
         integer("iterations", self.iterations, 1)
         integer("threads", self.threads, 1)
@@ -251,6 +256,7 @@ class EvalConfig:
     gif: bool = True
     gif_seed: Any = None  # null: the first seed the greedy policy succeeds on (else the first)
     fps: float = 1.5
+    fields: bool = False  # u (and w) of the GIF's episode as a VTX series (ParaView) and a PNG
     curve: bool = True  # learning_curve.png from the run's TensorBoard events
     overrides: list[str] = field(default_factory=list)  # changes to the run's config
 
@@ -260,6 +266,47 @@ class EvalConfig:
             integer("seeds", self.seeds, 1)
         elif self.seeds is not None and not self.seeds:
             raise ValueError("seeds must be N >= 1, a non-empty list of seeds, or null")
+
+
+def network_parameters(n_inputs: int, hidden: list[int], n_actions: int) -> int:
+    """The weights and biases of the MLP ``n_inputs -> hidden... -> n_actions``."""
+    widths = [n_inputs, *hidden, n_actions]
+    return sum((a + 1) * b for a, b in zip(widths, widths[1:], strict=False))
+
+
+def transition_bytes(input_bytes: int, n_actions: int) -> int:
+    """Bytes of one stored transition: the env's observation keys (``input_bytes``) now and
+    next, the action (int64), the Q-values and the chosen one (float32), the reward (float32)
+    and the done, terminated and truncated flags now and next (bool)."""
+    return 2 * input_bytes + 8 + 4 * (n_actions + 1) + 4 + 2 * 3
+
+
+def check_memory(config: TrainConfig, inputs: dict[str, tuple[int, int]], n_actions: int) -> None:
+    """ValueError naming ``agent.network.hidden`` or ``buffer.size`` if the Q-network
+    (:data:`BYTES_PER_PARAMETER` per parameter) or the replay buffer (``buffer.size`` x
+    :func:`transition_bytes`) would need more than ``max_memory_gb`` (10^9 bytes; a memory-mapped
+    buffer: disk). ``inputs``: the env's observation keys, each (numbers per step, bytes each);
+    a network input missing from it counts as one number."""
+    network = config.agent.network
+    n_inputs = sum(inputs.get(key, (1, 4))[0] for key in network.inputs)
+    parameters = network_parameters(n_inputs, network.hidden, n_actions)
+    per_transition = transition_bytes(sum(n * size for n, size in inputs.values()), n_actions)
+    needs = {
+        f"agent.network.hidden={list(network.hidden)}": (
+            parameters * BYTES_PER_PARAMETER,
+            f"{parameters:.3g} parameters x {BYTES_PER_PARAMETER} bytes",
+        ),
+        f"buffer.size={config.buffer.size}": (
+            config.buffer.size * per_transition,
+            f"{per_transition} bytes per transition",
+        ),
+    }
+    for setting, (size, how) in needs.items():
+        if size > config.max_memory_gb * 1e9:
+            raise ValueError(
+                f"{setting} would need about {size / 1e9:.3g} GB ({how}), more than "
+                f"max_memory_gb={config.max_memory_gb:g} (raise it to allow)"
+            )
 
 
 def register() -> None:

@@ -26,13 +26,14 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import torch
 from tensordict import TensorDictBase
@@ -53,7 +54,7 @@ from physicsrl.config import (
 )
 from physicsrl.evaluation import mean_metrics, run_episodes, write_csv
 
-__all__ = ["Dojo", "Counters", "n_step_transitions"]
+__all__ = ["Dojo", "Counters", "NonFiniteTraining", "n_step_transitions"]
 
 log = logging.getLogger("physicsrl.dojo")
 
@@ -65,6 +66,11 @@ class Counters:
     episodes: int = 0  # training episodes finished
     updates: int = 0  # gradient steps
     time_s: dict = field(default_factory=dict)  # cumulative seconds per phase
+
+
+class NonFiniteTraining(ArithmeticError):
+    """A loss or a weight became NaN or infinite: :meth:`Dojo.train` stops at once, keeping the
+    checkpoints written before (the message names the iteration and what became non-finite)."""
 
 
 def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> TensorDictBase:
@@ -319,7 +325,20 @@ class Dojo:
             self.target_updater.step()
             self.counters.updates += 1
             losses.append(float(loss.detach()))
+            if not math.isfinite(losses[-1]):
+                self._non_finite(f"the loss became {losses[-1]}")
+        bad = [name for name, p in self.loss.named_parameters() if not p.isfinite().all()]
+        if bad:
+            self._non_finite(f"the weights {bad[0]} became non-finite")
         return losses
+
+    def _non_finite(self, what: str) -> NoReturn:
+        saved = self._saved_iteration
+        kept = f"the checkpoint of iteration {saved} is kept" if saved >= 0 else "no checkpoint"
+        raise NonFiniteTraining(
+            f"iteration {self.counters.iteration + 1}, update {self.counters.updates}: {what}; "
+            f"training stopped ({kept})"
+        )
 
     def evaluate(
         self,

@@ -31,7 +31,7 @@ from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, find_run
 from physicsrl.cli.bench import format_table
 from physicsrl.config import TrainConfig, as_dict, typed
-from physicsrl.dojo import Dojo
+from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.groups import GroupedEnv, environments
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
@@ -165,7 +165,11 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
         check_environments(extra.get("environments", 1), n_environments(env))
         warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
     started = time.perf_counter()
-    summary = dojo.train(config.iterations)
+    try:
+        summary = dojo.train(config.iterations)
+    except NonFiniteTraining as error:
+        print(f"error: {error}", file=sys.stderr, flush=True)
+        raise SystemExit(1) from None
     summary["wall_s"] = time.perf_counter() - started
     summary["ranks"], summary["environments"] = ranks, n_environments(env)  # for core-hours
     table = []

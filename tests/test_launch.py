@@ -78,14 +78,17 @@ def test_an_exception_inside_a_hydra_command_ends_every_rank(tmp_path):
 @pytest.mark.parametrize(
     "settings, message",
     [
-        (["ping", "calls=-5"], "calls=-5: must be an integer >= 1"),
-        (["ping", "calls=0"], "calls=0: must be an integer >= 1"),
-        (["ping", "calls=abc", "mpi.ranks=2"], "calls=abc: must be an integer >= 1"),
-        (["ping", "repeats=1.5"], "repeats=1.5: must be an integer >= 1"),
-        (["ping", "idle_seconds=nan"], "idle_seconds=nan: must be a finite number >= 0.0"),
-        (["ms", "grid.n=1"], "grid.n=1: must be an integer >= 2"),
-        (["ms", "baseline=maybe"], "baseline=maybe: must be true or false"),
-        (["env", "decisions=0", "mpi.ranks=2"], "decisions=0: must be an integer >= 1"),
+        (["ping", "calls=-5"], "bad config: calls=-5: must be an integer >= 1"),
+        (["ping", "calls=0"], "bad config: calls=0: must be an integer >= 1"),
+        (["ping", "calls=abc", "mpi.ranks=2"], "bad config: calls=abc: must be an integer >= 1"),
+        (["ping", "repeats=1.5"], "bad config: repeats=1.5: must be an integer >= 1"),
+        (
+            ["ping", "idle_seconds=nan"],
+            "bad config: idle_seconds=nan: must be a finite number >= 0.0",
+        ),
+        (["ms", "grid.n=1"], "bad config: grid.n=1: must be an integer >= 2"),
+        (["ms", "baseline=maybe"], "bad config: baseline=maybe: must be true or false"),
+        (["env", "decisions=0", "mpi.ranks=2"], "bad config: decisions=0: must be an integer >= 1"),
         (["ping", "mpi.ranks=abc"], "mpi.ranks=abc: the number of ranks must be an integer >= 1"),
         (["ping", "mpi.ranks=-1"], "mpi.ranks=-1: the number of ranks must be an integer >= 1"),
     ],
@@ -183,3 +186,35 @@ def test_configs_are_found_from_a_built_wheel(tmp_path):
         env=env,
     )
     assert where.stdout.startswith(str(site))
+
+
+@pytest.mark.parametrize("status", [0, 3])
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_a_vanished_follower_ends_the_job_at_once_with_its_status(mpi, ranks, status):
+    """A follower that calls ``os._exit(K)`` in a parallel call: MPICH's mpiexec kills every
+    other rank (SIGKILL, no handler runs) and returns the status of the first process it sees
+    end, K or 9 (a killed one), so the job ends at once but no rank can name the vanished one
+    (README, Command line and MPI); ``os._exit(0)`` can end the job with status 0."""
+    script = "tests/mpi_scripts/coord_exit.py"
+    result = mpi(ranks, script, f"vanish-{status}", timeout=30, check=False)
+    assert result.returncode in (status, 9), result.stderr
+    assert "finished" not in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_a_vanished_follower_under_the_watchdog_is_named(ranks):
+    """``mpiexec -disable-auto-cleanup`` with ``PHYSICSRL_TIMEOUT``: the survivors wait for the
+    vanished rank in the call's collective until the watchdog aborts the job, non-zero, naming
+    the ranks whose call did not finish (the vanished one among them)."""
+    launch = [str(MPIEXEC), "-disable-auto-cleanup", "-n", str(ranks), sys.executable]
+    result = subprocess.run(
+        [*launch, "tests/mpi_scripts/coord_exit.py", "vanish-0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "PHYSICSRL_TIMEOUT": "1"},
+    )
+    assert result.returncode != 0
+    [line] = [line for line in result.stderr.splitlines() if line.startswith("watchdog:")]
+    assert "not finished after 1 s on ranks [0, " in line and f"{ranks - 1}]" in line, line

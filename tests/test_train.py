@@ -442,3 +442,68 @@ def test_defaults_are_defined_once():
     assert signature["frames_per_batch"].default == config.collector.frames_per_batch
     assert signature["updates_per_batch"].default == config.optim.updates_per_batch
     assert signature["n_steps"].default == config.loss.n_steps
+
+
+def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
+    """``physicsrl-eval fields=true`` under 2 ranks, on the heat task with a policy that always
+    advances (3 decisions of 0.1): the VTX series read back holds u on all 81 nodes at times
+    0, 0.1, 0.2, 0.3; at t = 0 u is the drawn integer level, later u_D = 1 on the boundary,
+    and its distance from u_D decays at every step (implicit Euler); the PNG is rendered from
+    the data read back."""
+    import numpy as np
+
+    from physicsrl.fem.output import read_series  # dolfinx before adios2 (their libraries)
+
+    pytest.importorskip("adios2", reason="reading the series back needs the fields extra")
+
+    small = ["env.mesh.cells=8", "env.max_steps=3", "eval.seeds=[1000000000]"]
+    quick = ["iterations=1", "collector.frames_per_batch=5", "optim.learning_starts=5"]
+    off = ["eval.every=0", "eval.baselines=false", "logger.tensorboard=false"]
+    arguments = [TRAIN, *small, *quick, *off, "logger.progress=false"]
+    trained = run([*arguments, f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert trained.returncode == 0, trained.stderr
+    state = final_state(tmp_path / "run")
+    *_, weight, bias = state["q_network"]  # the last layer: Q = (0, 1), always advance
+    state["q_network"][weight].zero_()
+    state["q_network"][bias].copy_(torch.tensor([0.0, 1.0]))
+    torch.save(state, tmp_path / "advance.pt")
+    out = tmp_path / "eval"
+    evaluate = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={tmp_path}/advance.pt"]
+    options = ["seeds=1", "baselines=false", "gif=false", "curve=false", "fields=true"]
+    result = run([*evaluate, *options, f"hydra.run.dir={out}"], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.count("fields of seed 1000000000 (u at 4 times)") == 1, result.stdout
+
+    series = read_series(out / "fields.bp")
+    assert np.allclose(series.times, [0.0, 0.1, 0.2, 0.3], atol=1e-12)
+    u = series.values["u"]
+    assert u.shape == (4, 81) and len(np.unique(series.points, axis=0)) == 81
+    level = np.unique(u[0])
+    assert len(level) == 1 and level[0] == round(level[0]) and level[0] != 1.0
+    boundary = np.abs(series.points[:, :2]).max(axis=1) > 2 - 1e-9
+    assert boundary.sum() == 32 and np.all(u[1:, boundary] == 1.0)
+    distance = np.sqrt(((u - 1.0) ** 2).mean(axis=1))
+    assert distance[0] > 0 and np.all(np.diff(distance) < 0), distance
+    assert (out / "fields.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_checkpoint(tmp_path):
+    """A learning rate of 1e30 (finite, so accepted) blows the weights up at the second update
+    (iteration 4, the first with learning_starts frames): under 2 ranks every rank exits
+    non-zero, the leader prints one line naming the iteration and what became non-finite, and
+    the checkpoint of iteration 2 stays the newest, with finite weights."""
+    from physicsrl.checkpoint import CheckpointManager
+
+    run_dir = tmp_path / "run"
+    result = run(command(run_dir, "optim.lr=1e30", "checkpoint.every=2"), tmp_path)
+    assert result.returncode == 1, result.stdout + result.stderr
+    errors = [line for line in result.stderr.splitlines() if "error" in line.lower()]
+    assert errors == [
+        "error: iteration 4, update 2: the loss became nan; training stopped "
+        "(the checkpoint of iteration 2 is kept)"
+    ], result.stderr
+    assert "Traceback" not in result.stderr
+    latest = CheckpointManager(run_dir / "checkpoints").latest()
+    assert latest.name == "ckpt_00000002.pt"
+    state = CheckpointManager.load(latest)
+    assert all(torch.isfinite(v).all() for v in state["loss"].values() if v.is_floating_point())

@@ -2,9 +2,9 @@
 
 Each benchmark ``NAME`` is the module ``physicsrl.bench.NAME`` (``run(cfg) -> rows``, and
 optionally ``goals(rows)`` and ``SETTINGS``, the type and least value of each setting, checked
-before any work) with the config ``conf/bench_NAME.yaml``. The leader prints the table
-and the goals and writes ``NAME.csv`` and ``NAME.json`` (with the command line) into the run
-directory.
+with the config's keys before any work, for every job of a ``-m`` sweep) with the config
+``conf/bench_NAME.yaml``. The leader prints the table and the goals and writes ``NAME.csv`` and
+``NAME.json`` (with the command line) into the run directory.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import math
 import shlex
 import sys
 
-from physicsrl.launch import output_dir, refuse, relaunch, run_hydra
+from physicsrl.launch import output_dir, relaunch, run_hydra
 
 BENCHMARKS = {
     "ping": "cost of one parallel call (report section 3.5)",
@@ -39,8 +39,8 @@ def format_table(rows: list[dict]) -> str:
 
 
 def check_settings(cfg, settings: dict[str, tuple[type, float | None]]) -> None:
-    """Refuse, in one line, a setting that is not of its type (int, float or bool) or is below
-    its least value (None: no bound)."""
+    """ValueError naming a setting that is not of its type (int, float or bool) or is below its
+    least value (None: no bound)."""
     from omegaconf import OmegaConf
 
     for key, (kind, least) in settings.items():
@@ -54,7 +54,7 @@ def check_settings(cfg, settings: dict[str, tuple[type, float | None]]) -> None:
         if not ok:
             what = {int: "an integer", float: "a finite number", bool: "true or false"}[kind]
             bound = f" >= {least}" if least is not None and kind is not bool else ""
-            refuse(f"{key}={value}: must be {what}{bound}")
+            raise ValueError(f"{key}={value}: must be {what}{bound}")
 
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
@@ -83,12 +83,15 @@ def main() -> None:
         choices = ", ".join(BENCHMARKS)
         raise SystemExit(f"error: unknown benchmark {name!r}; choose one of {choices}")
     relaunch(overrides)
+    from physicsrl.cli.command import validate_or_exit
+
     module = importlib.import_module(f"physicsrl.bench.{name}")
+    settings = getattr(module, "SETTINGS", {})
+    validate_or_exit(f"bench_{name}", overrides, lambda cfg: check_settings(cfg, settings))
 
     def task(cfg) -> None:
         from mpi4py import MPI
 
-        check_settings(cfg, getattr(module, "SETTINGS", {}))
         rows = module.run(cfg)
         if MPI.COMM_WORLD.rank == 0:
             report(name, rows, module.goals(rows) if hasattr(module, "goals") else [])

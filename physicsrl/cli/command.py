@@ -9,13 +9,16 @@ command under ``mpiexec``.
 
 from __future__ import annotations
 
-import os
+import dataclasses
 import sys
 from collections.abc import Callable
+from typing import NoReturn
 
 from omegaconf import OmegaConf
 
-from physicsrl.launch import relaunch, run_hydra
+from physicsrl.launch import refuse, relaunch, run_hydra
+
+MULTIRUN = {"-m", "--multirun"}
 
 
 def with_pairs(overrides: list[str]) -> list[str]:
@@ -45,6 +48,9 @@ def one_line(error: BaseException) -> str:
         chain.append(seen)
         seen = seen.__cause__ or seen.__context__
     for item in chain:
+        if getattr(item, "override", None):  # Hydra's OverrideParseException
+            reason = str(item).splitlines()[0]
+            return f"cannot parse the override '{item.override}': {reason}"
         key = getattr(item, "full_key", None)
         if key:
             message = str(item).splitlines()[0]
@@ -77,38 +83,70 @@ def compose(config_name: str, overrides: list[str]):
         GlobalHydra.instance().clear()
 
 
-def rank_from_launcher() -> int:
-    for variable in ("PMI_RANK", "OMPI_COMM_WORLD_RANK", "PMIX_RANK", "SLURM_PROCID"):
-        if variable in os.environ:
-            return int(os.environ[variable])
-    return 0
-
-
 def validate_or_exit(config_name: str, overrides: list[str], check: Callable) -> None:
-    """Compose the config, run every range check of its schema and ``check(cfg)`` on this rank;
-    on error the leader prints one line and every rank exits with status 2 (all ranks see the
-    same config, so no rank waits)."""
+    """Compose the config of the command line, run every range check of its schema and
+    ``check(cfg)`` on this rank, for the job or, with ``-m``, every job of the sweep (Hydra's
+    basic sweeper: the product of the comma-separated values) before any starts; nothing with
+    Hydra's print-only flags. On error the leader prints one line (naming the sweep's job) and
+    every rank exits with status 2 (all ranks see the same config, so no rank waits)."""
+    flags = {o for o in overrides if o.startswith("-")}
+    if not flags <= MULTIRUN:
+        return
+    arguments = [o for o in overrides if o not in flags]
+    try:
+        jobs = sweep_jobs(arguments) if flags else [arguments]
+        for number, job in enumerate(jobs, 1):
+            try:
+                validate(config_name, job, check)
+            except ValueError as error:
+                if not flags:
+                    raise
+                chosen = " ".join(o for o in job if not o.startswith("hydra"))
+                raise ValueError(
+                    f"{error.args[0]} (sweep job {number} of {len(jobs)}: {chosen})"
+                ) from error
+    except ValueError as error:
+        refuse_config(error)
+
+
+def refuse_config(error: ValueError | str) -> NoReturn:
+    """The leader prints ``error: bad config: <one line>``; every rank exits with status 2."""
+    message = error.args[0] if isinstance(error, ValueError) and error.args else str(error)
+    refuse(f"bad config: {' '.join(str(message).split())}")
+
+
+def validate(config_name: str, overrides: list[str], check: Callable) -> None:
+    """Compose, type (a config with a schema) and ``check`` the config of ``overrides``;
+    ValueError with one line."""
     from physicsrl.config import typed
 
     try:
         cfg = compose(config_name, overrides)
-        try:
+        if dataclasses.is_dataclass(OmegaConf.get_type(cfg)):
             typed(cfg)
-        except ValueError:
-            raise
-        except Exception as error:  # noqa: BLE001 - OmegaConf's errors name the key
-            raise ValueError(one_line(error)) from error
         check(cfg)
-    except Exception as error:  # noqa: BLE001
-        message = error.args[0] if isinstance(error, ValueError) and error.args else str(error)
-        if rank_from_launcher() == 0:
-            print(f"error: bad config: {' '.join(str(message).split())}", file=sys.stderr)
-        raise SystemExit(2) from None
+    except ValueError:
+        raise
+    except Exception as error:  # noqa: BLE001 - OmegaConf's errors name the key
+        raise ValueError(one_line(error)) from error
+
+
+def sweep_jobs(overrides: list[str]) -> list[list[str]]:
+    """The overrides of each job of a sweep, as Hydra's basic sweeper will launch them."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+        return BasicSweeper.split_arguments(parsed, None)[0]
+    except Exception as error:  # noqa: BLE001 - the parser raises several kinds
+        raise ValueError(one_line(error)) from error
 
 
 def main(config_name: str, task: str, check: Callable, pairs: bool = False) -> None:
-    """Launch (``mpi.ranks``), add the task's pairs to ``env=`` (``pairs``), validate (not for
-    Hydra's flags), then ``task(cfg)`` on every rank under Hydra (``task``: "module:function")."""
+    """Launch (``mpi.ranks``), add the task's pairs to ``env=`` (``pairs``), validate (every job
+    of a ``-m`` sweep; not with Hydra's print-only flags), then ``task(cfg)`` on every rank under
+    Hydra (``task``: "module:function")."""
     overrides = sys.argv[1:]
     relaunch(overrides)
     from physicsrl.builders import load_object
@@ -116,6 +154,5 @@ def main(config_name: str, task: str, check: Callable, pairs: bool = False) -> N
 
     overrides = with_pairs(overrides) if pairs else overrides
     register()
-    if not [o for o in overrides if o.startswith("-")]:
-        validate_or_exit(config_name, overrides, check)
+    validate_or_exit(config_name, overrides, check)
     run_hydra(config_name, load_object(task), overrides)

@@ -5,18 +5,27 @@ Rebuilds the env and the Q-network from the config stored in the checkpoint (eve
 the env; the leader evaluates), prints a table (return, success, shocks, episode length; one
 episode per seed), writes ``eval.csv`` (per seed) and ``eval_summary.csv`` (means) and, for the
 physics tasks, ``episode.gif``: the field after the reset and after each decision, catheter
-electrodes, shocks marked (by default of the first seed whose greedy episode succeeds). Files
-go to this command's run directory.
+electrodes, shocks marked (by default of the first seed whose greedy episode succeeds); with
+``fields=true`` the fields of that episode as a VTX series for ParaView (``fields.bp``) and a PNG
+of u drawn from the series read back (``fields.png``). Files go to this command's run
+directory.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from physicsrl.cli import command
+from physicsrl.launch import output_dir
+
+if TYPE_CHECKING:  # the simulators import MPI, which must wait for the mpi.ranks re-launch
+    from physicsrl.fem.output import Series
 
 
 def check(cfg) -> None:
+    import importlib.util
+
     from omegaconf import OmegaConf
 
     from physicsrl.checkpoint import checkpoint_file
@@ -27,6 +36,31 @@ def check(cfg) -> None:
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
     checkpoint_file(str(cfg.run))
+    if cfg.fields and importlib.util.find_spec("adios2") is None:
+        raise ValueError("fields=true reads the series back with adios2: pip install adios2")
+    run_config({}, list(cfg.overrides))  # the keys and types; the task groups come with the run
+
+
+def run_config(stored: dict, overrides: list[str]):
+    """The training config of the evaluated run: ``stored`` (its checkpoint's) changed by
+    ``overrides``, typed; ValueError naming the key."""
+    from omegaconf import OmegaConf
+
+    from physicsrl.cli.command import one_line
+    from physicsrl.config import TrainConfig, typed
+
+    changes = []
+    for override in overrides:
+        try:
+            changes.append(OmegaConf.from_dotlist([override]))
+        except Exception as error:  # noqa: BLE001 - YAML's parser errors
+            raise ValueError(f"overrides: cannot parse {override!r}") from error
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(TrainConfig), stored, *changes)
+        typed(merged)
+    except Exception as error:  # noqa: BLE001 - OmegaConf's errors name the key
+        raise ValueError(f"overrides: {one_line(error)}") from error
+    return merged
 
 
 def main() -> None:
@@ -36,11 +70,12 @@ def main() -> None:
 def evaluate(cfg) -> None:
     """Every rank: rebuild the run's env from its stored config; the leader evaluates."""
     from mpi4py import MPI
-    from omegaconf import OmegaConf
 
     from physicsrl import builders
     from physicsrl.checkpoint import checkpoint_file, read
-    from physicsrl.config import TrainConfig, typed
+    from physicsrl.cli.command import refuse_config
+    from physicsrl.cli.train import check_run
+    from physicsrl.config import typed
     from physicsrl.envs.groups import environments
 
     comm = MPI.COMM_WORLD
@@ -48,24 +83,50 @@ def evaluate(cfg) -> None:
     path = checkpoint_file(str(cfg.run))
     state = read(path, ["q_network", "counters", "extra"]) if leader else None
     config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
-    train_cfg = OmegaConf.merge(
-        OmegaConf.structured(TrainConfig),
-        OmegaConf.create(config),
-        OmegaConf.from_dotlist(list(cfg.overrides)),
-    )
+    try:  # as physicsrl-train checks its config, before anything is built
+        train_cfg = run_config(config, list(cfg.overrides))
+        check_run(train_cfg)
+    except ValueError as error:
+        refuse_config(error)
     eval_cfg = typed(cfg)
-    make_env = lambda coordinator: builders.make_env(train_cfg, coordinator)  # noqa: E731
+    recorders = []
+
+    def make_env(coordinator):
+        env = builders.make_env(train_cfg, coordinator)
+        if eval_cfg.fields:
+            recorders.append(field_recorder(env, coordinator, output_dir() / "fields.bp"))
+        return env
+
     with environments(make_env, eval_cfg.mpi.ranks_per_env) as env:
         if env is not None:  # the seeds are spread over the job's environments
-            evaluate_on_leader(eval_cfg, typed(train_cfg), env, state, path)
+            recorder = recorders[0] if recorders else None
+            evaluate_on_leader(eval_cfg, typed(train_cfg), env, state, path, recorder)
 
 
-def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
+def field_recorder(env, coordinator, path: Path):
+    """A :class:`~physicsrl.fem.FieldRecorder` of the simulator's u (and w, for a model with a
+    gate variable) into ``path``, built on every rank of the environment that world rank 0
+    plays (collective there); None on the other environments' ranks."""
+    from mpi4py import MPI
+
+    from physicsrl.cli.command import refuse_config
+    from physicsrl.fem import FieldRecorder
+
+    simulator = getattr(vars(env).get("task"), "simulator", None)
+    if simulator is None:
+        refuse_config("fields=true needs a physics task's env (env.factory's has no fields)")
+    if not coordinator.comm.bcast(MPI.COMM_WORLD.rank == 0, root=0):
+        return None
+    functions = [simulator.u_n(), *([simulator.w_n()] if hasattr(simulator, "w_n") else [])]
+    return FieldRecorder(coordinator, path, functions)
+
+
+def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=None) -> None:
     from physicsrl.cli.bench import format_table
     from physicsrl.config import held_out_seeds
     from physicsrl.envs.groups import GroupedEnv
     from physicsrl.evaluation import compare, write_csv
-    from physicsrl.launch import output_dir
+    from physicsrl.fem.output import render_series
     from physicsrl.training import baselines, make_dojo, rounded, task_of
 
     dojo = make_dojo(train_cfg, env)
@@ -90,17 +151,43 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path) -> None:
         curve = learning_curve(run_dir, directory / "learning_curve.png", means)
         if curve is not None:
             print(f"learning curve: {curve}")
+    succeeded = [r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")]
+    seed = int(cfg.gif_seed if cfg.gif_seed is not None else (succeeded or seeds)[0])
+    single = env.local_env if isinstance(env, GroupedEnv) else env
+    if recorder is not None:
+        series = record_fields(single, dojo.q_network, seed, recorder)
+        render_series(series, "u", len(series.times) - 1, directory / "fields.png")
+        print(
+            f"fields of seed {seed} ({', '.join(series.values)} at {len(series.times)} times): "
+            f"{recorder.path} (ParaView), last u: {directory / 'fields.png'}"
+        )
     if cfg.gif and task_of(env) is not None:
-        succeeded = [
-            r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")
-        ]
-        seed = int(cfg.gif_seed if cfg.gif_seed is not None else (succeeded or seeds)[0])
-        single = env.local_env if isinstance(env, GroupedEnv) else env
         gif = episode_gif(single, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
         print(
             f"episode of seed {seed}: actions {gif['actions']}, return {sum(gif['rewards']):.3f}: "
             f"{directory / 'episode.gif'}"
         )
+
+
+def record_fields(env, policy, seed: int, recorder) -> Series:
+    """Play one greedy episode of ``env`` from ``seed``, writing the fields with ``recorder``
+    after the reset and after each decision that advanced the simulation time; close the series
+    and read it back (leader only, inside ``with coordinator``)."""
+    from physicsrl.evaluation import episode
+    from physicsrl.fem.output import read_series
+
+    simulator = vars(env)["task"].simulator
+    times: list[float] = []
+
+    def write(*_) -> None:
+        if not times or simulator.t > times[-1]:
+            times.append(simulator.t)
+            recorder.write(simulator.t)
+
+    episode(env, policy, seed, callback=write)
+    write()  # the rollout stops at the end of the episode before its callback
+    recorder.close()
+    return read_series(recorder.path)
 
 
 def learning_curve(run_dir: Path, path: Path, baselines: list[dict] | None = None) -> Path | None:

@@ -15,23 +15,64 @@ from physicsrl.cli import command
 
 
 def check_task(cfg) -> None:
-    """The layout of environments over the job's ranks, and the task groups as
-    :func:`physicsrl.envs.make_env` will read them (nothing is built); an env from
-    ``env.factory`` checks its own settings."""
+    """The layout of environments over the job's ranks, then :func:`check_run`."""
     from physicsrl.envs.groups import check_layout
     from physicsrl.launch import launched_size
 
     check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
+    check_run(cfg)
+
+
+def check_run(cfg) -> None:
+    """The task groups as :func:`physicsrl.envs.make_env` will read them, the reward's events
+    among the task's, the observation inside the task's domain, the network's inputs among the
+    env's keys, and the memory of the network and the replay buffer
+    (:func:`~physicsrl.config.check_memory`); nothing is built.
+    An env from ``env.factory`` checks its own settings (its keys and sizes are not known
+    before it is built: each network input counts as one number)."""
+    from physicsrl.config import check_memory, typed
+
+    config = typed(cfg)
     if cfg.env.get("factory"):
+        check_memory(config, {}, n_actions=2)
         return
     from physicsrl.envs import OBSERVATIONS, REWARDS, TASKS
     from physicsrl.envs.config import build, plain
+    from physicsrl.envs.task import SquareMesh
 
     groups = plain(cfg)
-    for group, registry in (("observation", OBSERVATIONS), ("reward", REWARDS)):
-        build(*registry.lookup(groups[group]), group)
+    observation = build(*OBSERVATIONS.lookup(groups["observation"]), "observation")
+    reward = build(*REWARDS.lookup(groups["reward"]), "reward")
     task, settings = TASKS.lookup(groups["env"])
-    build(task.Config, settings, "env")
+    task_config = build(task.Config, settings, "env")
+    if reward.events - task.events:
+        raise ValueError(
+            f"reward={reward.name} does not fit the {task.name} task: it reads the events "
+            f"{sorted(reward.events - task.events)}, which the task does not report"
+        )
+    mesh = getattr(task_config, "mesh", None)
+    if isinstance(mesh, SquareMesh) and observation.outside(mesh.extent):
+        far = max(max(abs(x), abs(y)) for x, y in observation.outside(mesh.extent))
+        raise ValueError(
+            f"observation={observation.name} does not fit the {task.name} task: it reads at "
+            f"points up to {far:g} from the origin, outside the domain "
+            f"[-{mesh.extent:g}, {mesh.extent:g}]^2 (env.mesh.extent)"
+        )
+    inputs = env_inputs(task, observation)
+    unknown = [key for key in config.agent.network.inputs if key not in inputs]
+    if unknown:
+        raise ValueError(
+            f"agent.network.inputs: {unknown[0]!r} is not an observation key of the "
+            f"{task.name} task (its keys: {', '.join(inputs)})"
+        )
+    check_memory(config, inputs, task.n_actions)
+
+
+def env_inputs(task, observation) -> dict[str, tuple[int, int]]:
+    """The observation keys of :class:`~physicsrl.envs.env.PhysicsEnv` for ``task``, each
+    (numbers per step, bytes each), as its ``observation_spec`` will hold them."""
+    flags = {name: (1, 1) for name in ("diverged", *task.flags)}  # bool
+    return {"observation": (observation.size, 4), "step": (1, 8), **flags}
 
 
 def main() -> None:

@@ -27,6 +27,9 @@ from physicsrl.fem import HeatEnvironment, SimulationDiverged
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 
 STOP, ADVANCE = 0, 1
+# The exact optimum (the baselines) simulates every stopping time of every level: levels x
+# max_steps advances, about a minute at this bound on the default mesh.
+MAX_STEPS = 1000
 
 
 @dataclass(frozen=True)
@@ -54,7 +57,11 @@ class HeatConfig:
             raise ValueError(
                 f"advance_time must be a whole number of dt = {self.dt}, got {self.advance_time!r}"
             )
-        integer("max_steps", self.max_steps, 1)
+        if integer("max_steps", self.max_steps, 1) > MAX_STEPS:
+            raise ValueError(
+                f"max_steps must be <= {MAX_STEPS} (the exact optimum simulates every stopping "
+                f"time), got {self.max_steps!r}"
+            )
 
 
 @TASKS.register("heat")

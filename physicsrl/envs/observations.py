@@ -36,6 +36,11 @@ class Observation:
         """Array (size, owned dofs of V): the weights of the owned dofs. Collective."""
         raise NotImplementedError
 
+    def outside(self, extent: float) -> list[tuple[float, float]]:
+        """The points this observation reads at that lie outside the square
+        [-extent, extent]^2 (checked before a mesh is built); none for integrals over regions."""
+        return []
+
 
 @OBSERVATIONS.register("quadrants")
 @dataclass(frozen=True)
@@ -125,6 +130,10 @@ class Catheter(Observation):
         return (np.asarray(self.centre) + direction[:, None, :] * radius[None, :, None]).reshape(
             -1, 2
         )
+
+    def outside(self, extent: float) -> list[tuple[float, float]]:
+        positions = self.positions()
+        return [tuple(p) for p in positions[np.abs(positions).max(axis=1) > extent].tolist()]
 
     def rows(self, V: fem.FunctionSpace) -> np.ndarray:
         t, w = np.polynomial.laguerre.laggauss(self.radial_points)  # int e^-t f(t) dt

@@ -1,10 +1,13 @@
 """End the job in the way argv[1] names; the test checks every rank's exit and the output.
 
 ``exit-K``: the leader calls ``sys.exit(K)`` inside the with block; ``interrupt``: leader-only
-code raises KeyboardInterrupt; ``followers-collective``: a parallel call enters a barrier on the
-followers only (a hang that the watchdog ends); ``watched``: ordinary calls under the watchdog.
+code raises KeyboardInterrupt; ``vanish-K``: the last rank calls ``os._exit(K)`` inside a
+parallel call (a follower that disappears without a word); ``followers-collective``: a parallel
+call enters a barrier on the followers only (a hang that the watchdog ends); ``watched``:
+ordinary calls under the watchdog.
 """
 
+import os
 import sys
 
 from mpi4py import MPI
@@ -20,7 +23,9 @@ class Job(Coordinated):
         self.register_coordinator(coordinator)
 
     @parallel
-    def step(self, followers_only_barrier=False):
+    def step(self, followers_only_barrier=False, vanish=None):
+        if vanish is not None and comm.rank == comm.size - 1:
+            os._exit(vanish)
         if not followers_only_barrier or comm.rank != 0:
             comm.Barrier()
         return comm.rank
@@ -37,6 +42,10 @@ with coordinator:
             raise KeyboardInterrupt
         if how == "followers-collective":
             job.step(followers_only_barrier=True)
+        elif how.startswith("vanish-"):
+            job.step(vanish=int(how.removeprefix("vanish-")))
+            for _ in range(100):
+                job.step()
         else:
             for _ in range(100):
                 job.step()

@@ -1,0 +1,213 @@
+"""Bad command lines, tried as a hostile user would: every one ends with status 2 and one line
+naming the key, before any work.
+
+The table runs each row through the validation that the commands run before Hydra starts
+(:func:`physicsrl.cli.command.validate_or_exit`, in this process: it is a function of the
+composed config); a handful of rows run as real commands, some under ``mpiexec -n 2``, to pin
+that the line is printed once and that no rank waits.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.conftest import MPIEXEC
+
+BIN = Path(sys.executable).parent
+RUN = "<checkpoint>"  # physicsrl-eval rows: replaced by a checkpoint file
+
+# (command, overrides, what the line must name); command: train, eval or bench_NAME
+ROWS = [
+    # types
+    ("train", ["iterations=abc"], "'iterations'"),
+    ("train", ["iterations=1.5"], "'iterations'"),
+    ("train", ["agent.lr=abc"], "'agent.lr'"),
+    ("train", ["agent.network.hidden=abc"], "'agent.network.hidden'"),
+    ("train", ["agent.network.normalize=maybe"], "'agent.network.normalize'"),
+    ("train", ["collector.frames_per_batch=many"], "'collector.frames_per_batch'"),
+    ("train", ["resume=[1]"], "resume"),
+    ("train", ["iterations="], "'iterations'"),
+    ("train", ["seed="], "'seed'"),
+    # Enum members
+    ("train", ["agent.network.activation=sigmoid"], "'agent.network.activation'"),
+    ("train", ["buffer.storage=disk"], "'buffer.storage'"),
+    ("train", ["loss.loss_function=l3"], "'loss.loss_function'"),
+    ("train", ["loss.target.kind=medium"], "'loss.target.kind'"),
+    # ranges, NaN and inf
+    ("train", ["iterations=0"], "iterations must be an integer >= 1"),
+    ("train", ["iterations=-5"], "iterations must be an integer >= 1"),
+    ("train", ["seed=-1"], "seed must be an integer >= 0"),
+    ("train", ["threads=0"], "threads must be an integer >= 1"),
+    ("train", ["agent.lr=inf"], "agent.lr must be a finite number > 0"),
+    ("train", ["agent.lr=nan"], "agent.lr must be a finite number > 0"),
+    ("train", ["agent.lr=-1e-3"], "agent.lr must be a finite number > 0"),
+    ("train", ["optim.lr=0"], "optim.lr must be a finite number > 0"),
+    ("train", ["optim.weight_decay=-1"], "optim.weight_decay must be a finite number >= 0"),
+    ("train", ["optim.grad_clip=inf"], "optim.grad_clip must be a finite number >= 0"),
+    ("train", ["optim.updates_per_batch=-1"], "optim.updates_per_batch must be an integer"),
+    ("train", ["optim.learning_starts=-1"], "optim.learning_starts must be an integer"),
+    ("train", ["agent.exploration.eps_init=1.5"], "agent.exploration.eps_init must be"),
+    ("train", ["agent.exploration.eps_end=-0.1"], "agent.exploration.eps_end must be"),
+    ("train", ["agent.exploration.annealing_frames=0"], "annealing_frames must be an integer"),
+    ("train", ["agent.network.hidden=[0]"], "agent.network.hidden[0] must be an integer >= 1"),
+    ("train", ["agent.network.hidden=[64,-4]"], "agent.network.hidden[1] must be an integer"),
+    ("train", ["buffer.size=0"], "buffer.size must be an integer >= 1"),
+    ("train", ["buffer.batch_size=0"], "buffer.batch_size must be an integer >= 1"),
+    ("train", ["collector.frames_per_batch=0"], "collector.frames_per_batch must be an integer"),
+    ("train", ["loss.gamma=0"], "loss.gamma must be a finite number > 0 and <= 1"),
+    ("train", ["loss.gamma=1.5"], "loss.gamma must be a finite number > 0 and <= 1"),
+    ("train", ["loss.n_steps=0"], "loss.n_steps must be an integer >= 1"),
+    ("train", ["loss.target.tau=0"], "loss.target.tau must be a finite number > 0"),
+    ("train", ["loss.target.period=0"], "loss.target.period must be an integer >= 1"),
+    ("train", ["checkpoint.every=-1"], "checkpoint.every must be an integer >= 0"),
+    ("train", ["checkpoint.keep=0"], "checkpoint.keep must be an integer >= 1"),
+    ("train", ["eval.every=-1"], "eval.every must be an integer >= 0"),
+    ("train", ["mpi.ranks_per_env=0"], "mpi.ranks_per_env must be an integer >= 1"),
+    ("train", ["max_memory_gb=0"], "max_memory_gb must be a finite number > 0"),
+    ("train", ["max_memory_gb=nan"], "max_memory_gb must be a finite number > 0"),
+    ("train", ["env.max_steps=0"], "env.max_steps must be an integer >= 1"),
+    ("train", ["env.dt=-0.01"], "env.dt must be a finite number > 0"),
+    ("train", ["env.mesh.cells=0"], "env.mesh.cells must be an integer >= 1"),
+    ("train", ["env.levels=[5,-5]"], "env.levels must be a pair [low, high] with low <= high"),
+    ("train", ["observation.centre=[0]"], "observation.centre must have 2 entries"),
+    # empty and huge values
+    ("train", ["eval.seeds=[]"], "eval.seeds must list at least one seed"),
+    ("train", ["agent.network.inputs=[]"], "agent.network.inputs must name at least one"),
+    ("train", ["agent.network.hidden=[1000000000]"], "agent.network.hidden=[1000000000] would"),
+    ("train", ["agent.network.hidden=[100000,100000]"], "agent.network.hidden=[100000, 100000]"),
+    ("train", ["buffer.size=100000000000000"], "buffer.size=100000000000000 would need about"),
+    ("train", ["env.max_steps=1000000000"], "env.max_steps must be <= 1000"),
+    ("train", ["env.mesh.cells=1e9"], "env.mesh.cells must be an integer"),
+    # unknown keys and groups
+    ("train", ["foo=1"], "unknown key 'foo'"),
+    ("train", ["+loss.bogus=1"], "unknown key 'loss.bogus'"),
+    ("train", ["+agent.network.depth=3"], "unknown key 'agent.network.depth'"),
+    ("train", ["env.nosuch=1"], "unknown key 'env.nosuch'"),
+    ("train", ["reward.nosuch=1"], "unknown key 'reward.nosuch'"),
+    ("train", ["env=nosuch"], "env/nosuch"),
+    ("train", ["observation=nosuch"], "observation/nosuch"),
+    ("train", ["agent.network.inputs=[nosuchkey]"], "agent.network.inputs: 'nosuchkey'"),
+    # unparsable syntax
+    ("train", ["agent.network.hidden=[64,64"], "'agent.network.hidden=[64,64'"),
+    ("train", ["eval.seeds=[1,,2]"], "'eval.seeds=[1,,2]'"),
+    ("train", ["iterations=${oops"], "'iterations=${oops'"),
+    # incompatible pairs
+    ("train", ["observation=catheter"], "observation=catheter does not fit the heat task"),
+    ("train", ["env=heat", "observation=catheter"], "catheter does not fit the heat task"),
+    ("train", ["env=ms", "reward=heat_stop"], "reward=heat_stop does not fit the atp task"),
+    ("train", ["env=ms", "agent.network.inputs=[observation,nosuch]"], "'nosuch'"),
+    ("train", ["eval.seeds=[3]"], "eval.seeds [3] are also training seeds"),
+    # physicsrl-eval
+    ("eval", ["fps=0"], "fps must be a finite number > 0"),
+    ("eval", ["fps=nan"], "fps must be a finite number > 0"),
+    ("eval", ["seeds=[]"], "seeds must be N >= 1, a non-empty list of seeds, or null"),
+    ("eval", ["seeds=0"], "seeds must be an integer >= 1"),
+    ("eval", ["fields=maybe"], "'fields'"),
+    ("eval", ["gif=maybe"], "'gif'"),
+    ("eval", ["nosuch=1"], "unknown key 'nosuch'"),
+    ("eval", ['overrides=["nosuch=1"]'], "overrides: unknown key 'nosuch'"),
+    ("eval", ['overrides=["agent.lr=-1"]'], "overrides: agent.lr must be a finite number > 0"),
+    ("eval", ['overrides=["iterations=abc"]'], "overrides: bad value for 'iterations'"),
+    ("eval", ['overrides=["agent.network.hidden=[64,64"]'], "cannot parse 'agent.network.hid"),
+    ("eval", ["run=/etc/passwd"], "run=/etc/passwd is not a checkpoint file"),
+    ("eval", ["run=/nonexistent/run"], "run=/nonexistent/run: no checkpoint file there"),
+    # physicsrl-bench
+    ("bench_ping", ["calls=0"], "calls=0: must be an integer >= 1"),
+    ("bench_ping", ["calls=-5"], "calls=-5: must be an integer >= 1"),
+    ("bench_ping", ["repeats=1.5"], "repeats=1.5: must be an integer >= 1"),
+    ("bench_ping", ["idle_seconds=inf"], "idle_seconds=inf: must be a finite number"),
+    ("bench_ping", ["nosuch=1"], "'nosuch'"),
+    ("bench_ms", ["grid.n=1"], "grid.n=1: must be an integer >= 2"),
+    ("bench_ms", ["baseline=maybe"], "baseline=maybe: must be true or false"),
+    ("bench_env", ["decisions=0"], "decisions=0: must be an integer >= 1"),
+    # -m sweeps: every job, before any starts
+    ("train", ["-m", "iterations=-5,3"], "iterations must be an integer >= 1, got -5 (sweep job 1"),
+    ("train", ["-m", "iterations=3,-5"], "got -5 (sweep job 2 of 2: iterations=-5)"),
+    ("train", ["-m", "agent.lr=1e-3,inf"], "agent.lr must be a finite number > 0, got inf"),
+    ("train", ["-m", "seed=0,1", "foo=1"], "unknown key 'foo'"),
+    ("train", ["-m", "agent.network.hidden=[64],[0]"], "agent.network.hidden[0] must be"),
+    ("train", ["--multirun", "env=heat,ms", "observation=catheter"], "does not fit the heat task"),
+    ("bench_ping", ["-m", "calls=10,0"], "calls=0: must be an integer >= 1 (sweep job 2"),
+]
+
+
+def check_of(command: str):
+    """The check the command runs after composing (:func:`validate_or_exit`'s ``check``)."""
+    from physicsrl.cli import bench, train
+    from physicsrl.cli import eval as evaluate
+
+    if command == "train":
+        return train.check_task
+    if command == "eval":
+        return evaluate.check
+    import importlib
+
+    settings = importlib.import_module(f"physicsrl.bench.{command[6:]}").SETTINGS
+    return lambda cfg: bench.check_settings(cfg, settings)
+
+
+@pytest.fixture(scope="module")
+def checkpoint_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("eval") / "ckpt.pt"
+    torch.save({}, path)
+    return path
+
+
+@pytest.mark.parametrize("command, overrides, named", ROWS)
+def test_a_bad_command_line_is_one_line_naming_the_key(
+    capsys, checkpoint_file, command, overrides, named
+):
+    from physicsrl.cli.command import validate_or_exit, with_pairs
+
+    if command == "eval":
+        overrides = [f"run={checkpoint_file}", *overrides]
+    if command == "train":
+        overrides = with_pairs(overrides)
+    with pytest.raises(SystemExit) as exit_:
+        validate_or_exit(command, overrides, check_of(command))
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: bad config: "), err
+    assert named in lines[0], lines[0]
+
+
+def test_the_table_is_at_least_60_rows_over_every_command():
+    assert len(ROWS) >= 60
+    assert {command.split("_")[0] for command, _, _ in ROWS} == {"train", "eval", "bench"}
+    assert any("-m" in overrides for _, overrides, _ in ROWS)
+
+
+# Real commands: the line comes once, under 1 and 2 ranks, and every rank ends.
+PROCESSES = [
+    (1, ["physicsrl-train", "agent.network.hidden=[1000000000]"], "would need about 140 GB"),
+    (2, ["physicsrl-train", "-m", "iterations=-5,3"], "(sweep job 1 of 2: iterations=-5)"),
+    (2, ["physicsrl-train", "observation=catheter"], "catheter does not fit the heat task"),
+    (2, ["physicsrl-eval", f"run={RUN}", 'overrides=["nosuch=1"]'], "unknown key 'nosuch'"),
+]
+
+
+def test_real_commands_print_one_line_once_and_every_rank_ends(tmp_path, checkpoint_file):
+    """The rows of :data:`PROCESSES`, started together (each one a command line; 2: under
+    ``mpiexec -n 2``): status 2, one line on stderr, nothing on stdout, nothing written."""
+    started = []
+    for ranks, (program, *arguments), named in PROCESSES:
+        arguments = [a.replace(RUN, str(checkpoint_file)) for a in arguments]
+        launch = [str(MPIEXEC), "-n", "2"] if ranks == 2 else []
+        command = [*launch, str(BIN / program), *arguments]
+        cwd = tmp_path / str(len(started))
+        cwd.mkdir()
+        process = subprocess.Popen(
+            command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        started.append((process, cwd, named))
+    for process, cwd, named in started:
+        out, err = process.communicate(timeout=120)
+        assert process.returncode == 2, err
+        assert out == "" and len(err.splitlines()) == 1 and named in err, err
+        assert not list(cwd.iterdir())  # no run directory
