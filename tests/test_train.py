@@ -492,7 +492,7 @@ def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_check
     (iteration 4, the first with learning_starts frames): under 2 ranks every rank exits
     non-zero, the leader prints one line naming the iteration and what became non-finite, and
     the checkpoint of iteration 2 stays the newest, with finite weights."""
-    from physicsrl.checkpoint import CheckpointManager
+    from physicsrl.checkpoint import checkpoint_file, read
 
     run_dir = tmp_path / "run"
     result = run(command(run_dir, "optim.lr=1e30", "checkpoint.every=2"), tmp_path)
@@ -503,7 +503,7 @@ def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_check
         "(the checkpoint of iteration 2 is kept)"
     ], result.stderr
     assert "Traceback" not in result.stderr
-    latest = CheckpointManager(run_dir / "checkpoints").latest()
-    assert latest.name == "ckpt_00000002.pt"
-    state = CheckpointManager.load(latest)
-    assert all(torch.isfinite(v).all() for v in state["loss"].values() if v.is_floating_point())
+    latest = checkpoint_file(run_dir)
+    assert latest.name == "ckpt-000000000002.torchrl"
+    loss = read(latest, ["loss"])["loss"]
+    assert all(torch.isfinite(v).all() for v in loss.values() if v.is_floating_point())
