@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
 
 from tests.conftest import MPIEXEC
 
@@ -153,8 +152,10 @@ def check_of(command: str):
 
 @pytest.fixture(scope="module")
 def checkpoint_file(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("eval") / "ckpt.pt"
-    torch.save({}, path)
+    from torchrl.checkpoint import Checkpoint, JSONCheckpointAdapter
+
+    path = tmp_path_factory.mktemp("eval") / "ckpt.torchrl"
+    Checkpoint().register("extra", {}, adapter=JSONCheckpointAdapter()).save(path, format="archive")
     return path
 
 
