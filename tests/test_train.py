@@ -451,7 +451,9 @@ def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
     and its distance from u_D decays at every step (implicit Euler); the PNG is rendered from
     the data read back."""
     import numpy as np
+    from torchrl.checkpoint import Checkpoint
 
+    from physicsrl.checkpoint import State
     from physicsrl.fem.output import read_series  # dolfinx before adios2 (their libraries)
 
     pytest.importorskip("adios2", reason="reading the series back needs the fields extra")
@@ -466,9 +468,15 @@ def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
     *_, weight, bias = state["q_network"]  # the last layer: Q = (0, 1), always advance
     state["q_network"][weight].zero_()
     state["q_network"][bias].copy_(torch.tensor([0.0, 1.0]))
-    torch.save(state, tmp_path / "advance.pt")
+    advance = tmp_path / "advance.torchrl"
+    Checkpoint(
+        format="archive",
+        q_network=State(lambda: state["q_network"], None),
+        counters=State(lambda: state["counters"], None),
+        extra=state["extra"],
+    ).save(advance)
     out = tmp_path / "eval"
-    evaluate = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={tmp_path}/advance.pt"]
+    evaluate = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={advance}"]
     options = ["seeds=1", "baselines=false", "gif=false", "curve=false", "fields=true"]
     result = run([*evaluate, *options, f"hydra.run.dir={out}"], tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
