@@ -21,7 +21,16 @@ import torch
 
 from physicsrl.checkpoint import Checkpoints, damage, read
 from tests.conftest import MPIEXEC, ROOT
-from tests.test_train import TOY, TRAIN, checkpoint_name, run, same, start_and_wait_for
+from tests.test_train import (
+    TOY,
+    TRAIN,
+    checkpoint_name,
+    run,
+    same,
+    start_and_wait_for,
+    timeless,
+    written,
+)
 
 SHORT = [
     f"+env.factory={TOY}:make_env",
@@ -64,8 +73,10 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     log = (first / "train.log").read_text()
     assert f"resumed from {checkpoints.directory / checkpoint_name(4)} at iteration 4" in log
     repeated = read(newest)
-    for name in ("q_network", "loss", "optimizer", "replay_buffer", "exploration", "history"):
+    for name in ("q_network", "loss", "optimizer", "exploration"):
         assert same(repeated[name], original[name]), name
+    assert same(written(repeated["replay_buffer"]), written(original["replay_buffer"]))
+    assert timeless(repeated["history"]) == timeless(original["history"])
     assert {k: v for k, v in repeated["counters"].items() if k != "time_s"} == {
         k: v for k, v in original["counters"].items() if k != "time_s"
     }
