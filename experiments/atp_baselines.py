@@ -24,7 +24,7 @@ Writes, on the leader, ``<name>.csv`` (one row per policy: mean return, success 
 shocks and decisions), ``<name>_per_seed.csv`` (after each policy) and ``<name>.txt`` (the
 command, commit and settings), where name is ``<experiment>_baselines`` or
 ``<experiment>_open_loop``. ``--resume`` keeps the policies already in ``<name>_per_seed.csv``
-when the settings are the same.
+when the settings are the same, and adds its command and commit to ``<name>.txt``.
 """
 
 from __future__ import annotations
@@ -82,10 +82,12 @@ def main() -> None:
                 n: p for k, (n, p) in zip(POLICIES, policies.items(), strict=True) if k in keep
             }
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / f"{name}.txt").write_text(
-            f"{shlex.join(['python', *sys.argv])}\ncommit {commit()}\n"
-            f"settings {json.dumps(settings)}\n"
-        )
+        record = args.out / f"{name}.txt"
+        call = f"{shlex.join(['python', *sys.argv])}\ncommit {commit()}\n"
+        if done:  # a resumed search: every call that computed rows stays on record
+            record.write_text(record.read_text() + call)
+        else:
+            record.write_text(f"settings {json.dumps(settings)}\n{call}")
         per_seed, means = [], []
         for policy_name, policy in policies.items():
             rows = done.get(policy_name) or [

@@ -138,6 +138,8 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
         dict(r, **{"return": "x"}) for r in rows[1:]
     ]
     assert [float(r["return"]) for r in again[10:]] == [float(r["return"]) for r in rows[10:]]
+    record = (tmp_path / "atp_open_loop.txt").read_text()
+    assert record.count("commit ") == 2 and record.count("--resume") == 1
 
 
 def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
