@@ -162,11 +162,16 @@ class LossConfig:
     loss_function: LossFunction = LossFunction.smooth_l1
     double_dqn: bool = True
     n_steps: int = 1  # n-step TD targets
+    # extra cost of each action (by index) in the rewards learnt from, never in evaluations
+    # ([0, 40]: action 1 costs 40 more in training); []: none
+    action_costs: list[float] = field(default_factory=list)
     target: TargetConfig = field(default_factory=TargetConfig)
 
     def __post_init__(self):
         fraction("loss.gamma", self.gamma, open_low=True)
         integer("loss.n_steps", self.n_steps, 1)
+        for i, cost in enumerate(self.action_costs):
+            number(f"loss.action_costs[{i}]", cost)
 
 
 @dataclass

@@ -54,7 +54,7 @@ from physicsrl.config import (
 )
 from physicsrl.evaluation import mean_metrics, run_episodes, write_csv
 
-__all__ = ["Dojo", "Counters", "NonFiniteTraining", "n_step_transitions"]
+__all__ = ["Dojo", "Counters", "NonFiniteTraining", "charge_actions", "n_step_transitions"]
 
 log = logging.getLogger("physicsrl.dojo")
 
@@ -95,6 +95,19 @@ def n_step_transitions(data: TensorDictBase, n_steps: int, gamma: float) -> Tens
     return out
 
 
+def charge_actions(data: TensorDictBase, costs: torch.Tensor) -> TensorDictBase:
+    """``data`` with ``costs[a]`` subtracted from the reward of each step that took action ``a``
+    (one-hot or index actions; actions beyond ``costs`` cost nothing)."""
+    action = data["action"]
+    chosen = action.long().argmax(-1) if action.dtype == torch.bool else action.long()
+    padded = torch.cat([costs, torch.zeros(max(0, int(chosen.max()) + 1 - len(costs)))])
+    out = data.clone(recurse=False)
+    out["next"] = data["next"].clone(recurse=False)
+    reward = data["next", "reward"]
+    out["next", "reward"] = reward - padded[chosen].reshape(reward.shape).to(reward.dtype)
+    return out
+
+
 class Dojo:
     """DQN training pipeline: collect, store, learn, evaluate, log, checkpoint.
 
@@ -121,6 +134,10 @@ class Dojo:
         Max gradient norm (``None``: no clipping).
     n_steps:
         Learn from n-step transitions (:func:`n_step_transitions`; 1: one-step TD).
+    action_costs:
+        Cost of each action by index, subtracted from the rewards stored for learning and
+        not from the returns logged or evaluated (:func:`charge_actions`): a training-only
+        penalty, e.g. on shocks the task's own cost makes too cheap to learn apart from noise.
     reset_at_each_iter:
         Start every batch from a fresh episode seeded by :meth:`train_seed` (exact resume).
     seed:
@@ -161,6 +178,7 @@ class Dojo:
         learning_starts: int = OptimConfig.learning_starts,
         grad_clip: float | None = OptimConfig.grad_clip,
         n_steps: int = LossConfig.n_steps,
+        action_costs: Sequence[float] = (),
         reset_at_each_iter: bool = CollectorConfig.reset_at_each_iter,
         seed: int = 0,
         eval_every: int = Evaluation.every,
@@ -186,6 +204,7 @@ class Dojo:
         self.learning_starts = int(learning_starts)
         self.grad_clip = grad_clip
         self.n_steps = int(n_steps)
+        self.action_costs = torch.tensor([float(c) for c in action_costs])
         self.reset_at_each_iter = bool(reset_at_each_iter)
         self.seed = int(seed)
         self.eval_every = int(eval_every)
@@ -249,6 +268,8 @@ class Dojo:
                 self._add_time("simulation", collect_s - (self._coordination_s - coordination))
                 returns = self._record_batch(data)
                 self.exploration[-1].step(data.numel())  # anneal epsilon
+                if len(self.action_costs):
+                    data = charge_actions(data, self.action_costs)
                 if self.n_steps > 1:
                     gamma = float(self.loss.value_estimator.gamma)
                     data = n_step_transitions(data, self.n_steps, gamma)

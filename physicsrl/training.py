@@ -112,6 +112,7 @@ def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None =
         learning_starts=config.optim.learning_starts,
         grad_clip=config.optim.grad_clip or None,
         n_steps=config.loss.n_steps,
+        action_costs=config.loss.action_costs,
         seed=config.seed,
         eval_every=config.eval.every,
         eval_seeds=config.eval.seeds,

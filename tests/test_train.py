@@ -70,10 +70,14 @@ def reference(tmp_path_factory):
     return cwd, run_dir, result
 
 
-@pytest.mark.parametrize("n_steps", [1, 3])
-def test_dojo_learns_a_known_optimum(n_steps):
+@pytest.mark.parametrize(
+    "n_steps, action_costs, optimum", [(1, (), 1.0), (3, (), 1.0), (1, (0.0, 2.0), 0.0)]
+)
+def test_dojo_learns_a_known_optimum(n_steps, action_costs, optimum):
     """In-process, one rank: greedy return of the 3-step chain reaches its optimum 1, with
-    one-step and with 3-step TD targets."""
+    one-step and with 3-step TD targets. With stopping charged 2 in training (more than it
+    ever pays) the optimum of what is learnt is never to stop: the evaluated return, in the
+    task's own reward, is then 0."""
     sys.path.insert(0, str(TOY.parent))
     from train_toy_env import ToyChainEnv
 
@@ -98,14 +102,33 @@ def test_dojo_learns_a_known_optimum(n_steps):
             frames_per_batch=16,
             learning_starts=64,
             n_steps=n_steps,
+            action_costs=action_costs,
             eval_every=0,
             progress=False,
         )
         summary = dojo.train(60)
     assert summary["iteration"] == 60 and summary["frames"] == 960
     assert dojo.replay_buffer is buffer and len(buffer) == 500  # the given capacity is kept
-    assert summary["eval"]["return"] == pytest.approx(ToyChainEnv.optimum)
-    assert summary["eval"]["success"] == 1.0
+    assert summary["eval"]["return"] == pytest.approx(optimum)
+    assert summary["eval"]["success"] == optimum
+    stored = buffer[:]
+    stops = stored["action"] == 1
+    assert stops.any()  # explored
+    charged = stored["next", "reward"].flatten()[stops] < 0
+    assert charged.all() if action_costs else not charged.any()
+
+
+def test_charge_actions_subtracts_each_actions_cost_from_its_reward():
+    from tensordict import TensorDict
+
+    from physicsrl.dojo import charge_actions
+
+    rewards = torch.tensor([[1.0], [2.0], [3.0]])
+    for action in (torch.tensor([0, 1, 2]), torch.eye(3, dtype=torch.bool)):  # index, one-hot
+        data = TensorDict(action=action, next=TensorDict(reward=rewards, batch_size=[3]), batch_size=[3])
+        out = charge_actions(data, torch.tensor([0.0, 40.0]))
+        assert out["next", "reward"].flatten().tolist() == [1.0, -38.0, 3.0]
+        assert data["next", "reward"].flatten().tolist() == [1.0, 2.0, 3.0]  # not in place
 
 
 def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
