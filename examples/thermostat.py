@@ -6,6 +6,12 @@ step. The simulator lives on every rank; the leader trains DQN on it:
 
     python examples/thermostat.py                  # 1 rank
     mpiexec -n 2 python examples/thermostat.py     # the same training, the solve on 2 ranks
+
+The task and its reward are registered under the names of their YAML files
+(``examples/conf/env/thermostat.yaml``, ``examples/conf/reward/keep_target.yaml``, which name
+this file as their ``module``), so the command line trains it too, from the repository root:
+
+    physicsrl-train hydra.searchpath=[file://examples/conf] +experiment=thermostat
 """
 
 import sys
@@ -18,8 +24,18 @@ from physicsrl.builders import make_q_network
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.dojo import Dojo
-from physicsrl.envs import PhysicsEnv, Quadrants, Reward, SquareMesh, Task, Transition
+from physicsrl.envs import (
+    REWARDS,
+    TASKS,
+    PhysicsEnv,
+    Quadrants,
+    Reward,
+    SquareMesh,
+    Task,
+    Transition,
+)
 from physicsrl.envs.baselines import Constant
+from physicsrl.envs.config import integer, positive
 from physicsrl.evaluation import compare
 from physicsrl.fem import HeatEnvironment
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows
@@ -27,29 +43,38 @@ from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 
 @dataclass(frozen=True)
 class Thermostat:
+    """The settings of ``env=thermostat`` (the keys of its YAML), checked when built."""
+
     mesh: SquareMesh = SquareMesh(cells=16, extent=1.0)
     dt: float = 0.02
     interval: float = 0.1  # time between decisions
     heat: float = 40.0  # f when the heater is on
     max_steps: int = 20
 
+    def __post_init__(self):
+        for name in ("dt", "interval", "heat"):
+            positive(name, getattr(self, name))
+        integer("max_steps", self.max_steps, 1)
 
+
+@TASKS.register("thermostat")
 class ThermostatTask(Task):
     """Simulator side: one parallel call per reset and per step, on every rank."""
 
-    name, n_actions, events = "thermostat", 2, frozenset({"mean"})
+    Config, n_actions, events = Thermostat, 2, frozenset({"mean"})
+    pairs = ("quadrants", "keep_target")  # the observation and reward that go with it
     action_counts = {"heating": 1}  # reported per evaluated episode
 
     def baselines(self, env, seeds, seed):
         return {"heater off": Constant(0), "heater on": Constant(1)}
 
-    def __init__(self, coordinator: Coordinator, config: Thermostat):
-        self.config, self.max_steps, self.observation = config, config.max_steps, Quadrants()
+    def __init__(self, coordinator: Coordinator, config: Thermostat, observation: Quadrants):
+        self.config, self.max_steps, self.observation = config, config.max_steps, observation
         domain = config.mesh.create(coordinator.comm)
         self.simulator = HeatEnvironment(coordinator, domain, dt=config.dt, u_D=0.0)
         self.register_coordinator(coordinator)
         V = self.simulator.V
-        self.integrals = WeightedIntegrals(V, np.vstack([form_rows(V, [1.0]), Quadrants().rows(V)]))
+        self.integrals = WeightedIntegrals(V, np.vstack([form_rows(V, [1.0]), observation.rows(V)]))
         self.area = (2 * config.mesh.extent) ** 2
 
     def draw(self, rng: np.random.Generator) -> tuple[float]:
@@ -72,9 +97,9 @@ class ThermostatTask(Task):
         return Transition(values[1:], mean, self.steps, terminated=self.steps >= self.max_steps)
 
 
+@REWARDS.register("keep_target")
 @dataclass(frozen=True)
 class KeepTarget(Reward):
-    name: str = "keep_target"
     events = frozenset({"mean"})
     target: float = 1.0
 
@@ -84,7 +109,7 @@ class KeepTarget(Reward):
 
 def main(iterations: int) -> dict[str, float]:
     coordinator = Coordinator()
-    task = ThermostatTask(coordinator, Thermostat())
+    task = ThermostatTask(coordinator, Thermostat(), Quadrants())
     env = PhysicsEnv(task, KeepTarget(), seed=0)
     with coordinator:
         if coordinator.is_leader():

@@ -61,6 +61,8 @@ ROWS = [
     ("train", ["loss.gamma=0"], "loss.gamma must be a finite number > 0 and <= 1"),
     ("train", ["loss.gamma=1.5"], "loss.gamma must be a finite number > 0 and <= 1"),
     ("train", ["loss.n_steps=0"], "loss.n_steps must be an integer >= 1"),
+    ("train", ["loss.action_costs=[0,nan]"], "loss.action_costs[1] must be a finite number"),
+    ("train", ["+env.module=nowhere.py"], "env.module 'nowhere.py' cannot be imported"),
     ("train", ["loss.target.tau=0"], "loss.target.tau must be a finite number > 0"),
     ("train", ["loss.target.period=0"], "loss.target.period must be an integer >= 1"),
     ("train", ["checkpoint.every=-1"], "checkpoint.every must be an integer >= 0"),

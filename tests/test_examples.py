@@ -3,6 +3,7 @@
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -41,3 +42,23 @@ def test_readme_quickstart_runs_under_mpi(mpi, tmp_path):
     script.write_text(code)
     result = mpi(2, str(script), timeout=600)
     assert "'return':" in result.stdout
+
+
+def test_a_task_outside_the_package_trains_and_evaluates_from_the_command_line(tmp_path):
+    """The thermostat is its module and its YAML: ``env=thermostat`` from a user's config
+    directory brings its observation and reward (the task's pairs), trains on 2 ranks, and
+    ``physicsrl-eval`` finds the task again from the run's config (its ``env.module``)."""
+    bin_dir = Path(sys.executable).parent
+    run = tmp_path / "run"
+    train = [str(bin_dir / "physicsrl-train"), "hydra.searchpath=[file://examples/conf]"]
+    train += ["env=thermostat", "mpi.ranks=2", "iterations=2", "logger.progress=false"]
+    result = subprocess.run(
+        [*train, f"hydra.run.dir={run}"], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    assert result.returncode == 0, result.stderr
+    assert "heater on" in result.stdout and "heating" in result.stdout
+    evaluate = [str(bin_dir / "physicsrl-eval"), f"run={run}", "seeds=2", "gif=false"]
+    evaluate += ["curve=false", f"hydra.run.dir={tmp_path / 'eval'}"]
+    result = subprocess.run(evaluate, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    assert "greedy DQN" in result.stdout and "heater off" in result.stdout

@@ -125,7 +125,9 @@ def test_charge_actions_subtracts_each_actions_cost_from_its_reward():
 
     rewards = torch.tensor([[1.0], [2.0], [3.0]])
     for action in (torch.tensor([0, 1, 2]), torch.eye(3, dtype=torch.bool)):  # index, one-hot
-        data = TensorDict(action=action, next=TensorDict(reward=rewards, batch_size=[3]), batch_size=[3])
+        data = TensorDict(
+            action=action, next=TensorDict(reward=rewards, batch_size=[3]), batch_size=[3]
+        )
         out = charge_actions(data, torch.tensor([0.0, 40.0]))
         assert out["next", "reward"].flatten().tolist() == [1.0, -38.0, 3.0]
         assert data["next", "reward"].flatten().tolist() == [1.0, 2.0, 3.0]  # not in place

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import NoReturn
 
 from omegaconf import OmegaConf
@@ -29,11 +30,20 @@ def with_pairs(overrides: list[str]) -> list[str]:
         return overrides
     from physicsrl.envs import TASKS
     from physicsrl.envs.factory import shipped
+    from physicsrl.envs.registry import import_module_of
 
+    searched = [  # a user's configs first (hydra.searchpath=[file://DIR,...])
+        Path(d.removeprefix("file://")) / "env" / f"{chosen['env']}.yaml"
+        for d in chosen.get("hydra.searchpath", "").strip("[]").split(",")
+        if d.startswith("file://")
+    ]
     try:
-        task = TASKS.classes.get(OmegaConf.load(shipped("env", chosen["env"])).get("name"))
-    except FileNotFoundError:
-        return overrides  # composing names the unknown option
+        found = [p for p in searched if p.is_file()]
+        env = OmegaConf.load(found[0] if found else shipped("env", chosen["env"]))
+        import_module_of("env", env)
+    except (FileNotFoundError, ValueError):
+        return overrides  # composing or checking names the unknown option
+    task = TASKS.classes.get(env.get("name"))
     pairs = dict(zip(("observation", "reward"), getattr(task, "pairs", None) or (), strict=False))
     return [
         *overrides,
@@ -72,7 +82,11 @@ def compose(config_name: str, overrides: list[str]):
     from physicsrl.config import register
 
     register()
-    job_overrides = [o for o in overrides if not o.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    job_overrides = [  # Hydra's own settings, but where to find configs (a user's tasks)
+        o
+        for o in overrides
+        if o.startswith("hydra.searchpath") or not o.lstrip("+~").startswith(("hydra.", "hydra/"))
+    ]
     GlobalHydra.instance().clear()
     try:
         with initialize_config_module(config_module="physicsrl.conf", version_base=None):

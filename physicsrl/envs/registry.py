@@ -2,7 +2,10 @@
 
 Adding an observation, a reward or a task is one class decorated with
 ``@REGISTRY.register("name")`` plus one YAML file whose ``name`` is that name; the other keys of
-the YAML are the class's config fields (see :func:`physicsrl.envs.config.build`).
+the YAML are the class's config fields (see :func:`physicsrl.envs.config.build`). A class
+outside the package is found through the YAML's ``module`` key: a module name
+(``mylab.tasks``) or a ``.py`` file (relative to the working directory) imported, once, before
+the name is looked up (``examples/thermostat.py`` and its YAML in ``examples/conf/``).
 """
 
 from __future__ import annotations
@@ -37,7 +40,23 @@ class Registry:
             raise ValueError(f"{self.group} must be a mapping with a 'name', got {settings!r}")
         settings = dict(settings)
         name = settings.pop("name")
+        import_module_of(self.group, settings)
+        settings.pop("module", None)
         if name not in self.classes:
             known = ", ".join(sorted(self.classes))
             raise ValueError(f"{self.group}.name {name!r} is unknown; registered: {known}")
         return self.classes[name], settings
+
+
+def import_module_of(group: str, settings: Mapping) -> None:
+    """Import the ``module`` a config group's settings name, if any (ValueError naming
+    ``group.module`` if it cannot be imported)."""
+    module = settings.get("module")
+    if module is None:
+        return
+    from physicsrl.builders import import_source
+
+    try:
+        import_source(str(module))
+    except (ImportError, OSError) as error:
+        raise ValueError(f"{group}.module {module!r} cannot be imported: {error}") from error
