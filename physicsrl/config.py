@@ -262,7 +262,7 @@ class EvalConfig:
     gif_seed: Any = None  # null: the first seed the greedy policy succeeds on (else the first)
     fps: float = 1.5
     fields: bool = False  # u (and w) of the GIF's episode as a VTX series (ParaView) and a PNG
-    curve: bool = True  # learning_curve.png from the run's TensorBoard events
+    curve: bool = True  # learning_curve.png from the run's eval.csv (physicsrl.learning_curve)
     overrides: list[str] = field(default_factory=list)  # changes to the run's config
 
     def __post_init__(self):

@@ -170,13 +170,8 @@ def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
 def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
     """The cost-normalised curves: core-hours are wall-clock hours times the job's ranks (from
     its summary), and the figure is written with the best row of a baseline table."""
-    import importlib.util
+    from physicsrl import learning_curve as curve
 
-    spec = importlib.util.spec_from_file_location(
-        "curve", ROOT / "experiments" / "learning_curve.py"
-    )
-    curve = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(curve)
     rows = [{"frames": 30, "wall_s": 1800.0}, {"frames": 60, "wall_s": 5400.0}]
     x = curve.curves(rows, ranks=4)
     assert x == {

@@ -122,6 +122,7 @@ def field_recorder(env, coordinator, path: Path):
 
 
 def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=None) -> None:
+    from physicsrl import learning_curve
     from physicsrl.cli.bench import format_table
     from physicsrl.config import held_out_seeds
     from physicsrl.envs.groups import GroupedEnv
@@ -148,7 +149,9 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     print(f"results: {directory / 'eval_summary.csv'} (per seed: eval.csv)")
     if cfg.curve:
         run_dir = path.parent.parent
-        curve = learning_curve(run_dir, directory / "learning_curve.png", means)
+        environments = state["extra"].get("environments", 1)
+        ranks = learning_curve.job_ranks(run_dir) or environments * train_cfg.mpi.ranks_per_env
+        curve = learning_curve.plot(run_dir, directory / "learning_curve.png", means, ranks)
         if curve is not None:
             print(f"learning curve: {curve}")
     succeeded = [r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")]
@@ -188,48 +191,6 @@ def record_fields(env, policy, seed: int, recorder) -> Series:
     write()  # the rollout stops at the end of the episode before its callback
     recorder.close()
     return read_series(recorder.path)
-
-
-def learning_curve(run_dir: Path, path: Path, baselines: list[dict] | None = None) -> Path | None:
-    """Plot the run's training and evaluation returns against env steps (from its TensorBoard
-    events), with the baselines' mean returns as horizontal lines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    events = EventAccumulator(str(run_dir / "tensorboard"))
-    events.Reload()
-    tags = set(events.Tags().get("scalars", []))
-    if "eval/return" not in tags:
-        return None
-    frames = (
-        {e.step: e.value for e in events.Scalars("train/frames")} if "train/frames" in tags else {}
-    )
-
-    def series(tag):
-        points = events.Scalars(tag)
-        return [frames.get(p.step, p.step) for p in points], [p.value for p in points]
-
-    figure, ax = plt.subplots(figsize=(7, 4.2))
-    if "train/return" in tags:
-        x, y = series("train/return")
-        ax.plot(x, y, ".", color="0.6", markersize=3, label="training episodes (epsilon-greedy)")
-    x, y = series("eval/return")
-    ax.plot(x, y, "o-", color="C0", label="greedy policy, held-out seeds")
-    for i, row in enumerate(baselines or []):
-        if row["policy"] != "greedy DQN":
-            ax.axhline(row["return"], ls="--", lw=1, color=f"C{i + 1}", label=row["policy"])
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("return per episode")
-    ax.set_title(f"learning curve: {run_dir.name}")
-    ax.legend(fontsize=8, loc="lower right")
-    ax.grid(alpha=0.3)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-    return path
 
 
 def episode_gif(env, policy, seed: int, path: Path, fps: float = 1.5) -> dict:
