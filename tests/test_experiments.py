@@ -31,7 +31,7 @@ def compose(*overrides: str, section: str = "job") -> str:
 def test_atp_presets_compose_with_the_report_figures():
     job = compose("+experiment=atp")
     assert "name: atp" in job and "name: catheter" in job and "iterations: 500" in job
-    assert "action_costs:\n  - 0.0\n  - 40.0" in job
+    assert "action_costs:\n  - 0.0\n  - 10.0" in job
     assert "inputs:\n    - observation\n    - step" in job and "n_steps: 8" in job
     wide = compose("+experiment=atp_wide")
     assert "- -20.0\n    - 20.0" in wide  # the wider placement of the reset stimulus
