@@ -76,7 +76,10 @@ INLINE_BYTES = 240
 _HEADER = struct.Struct("<4i")  # route, flags, payload length, sequence number
 _STOP, _FAIL, _EXIT = -1, -2, -3  # _EXIT carries the leader's exit status in the flags
 _PICKLE, _CLOUDPICKLE, _DEFINE = 1, 2, 4
-_TAG, _DONE_TAG = 17, 18
+_TAG, _DONE_TAG, _FAILED_TAG = 17, 18, 19
+LEADER_FAILED_GRACE_S = (
+    2.0  # a failing follower waits this long for word that the leader failed too
+)
 REPORT_S = 0.01  # a follower under the watchdog reports finished calls at most this often
 INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
 
@@ -126,10 +129,12 @@ def wait_for(
             return
 
 
-def _fail(comm: MPI.Comm, where: str) -> None:
-    """Print the current exception's traceback and end every rank of ``comm``."""
-    sys.stderr.write(f"[rank {comm.rank}] {where}:\n{traceback.format_exc()}")
-    sys.stderr.flush()
+def _fail(comm: MPI.Comm, where: str | None) -> None:
+    """Print the current exception's traceback (unless ``where`` is None) and end every rank
+    of ``comm``."""
+    if where is not None:
+        sys.stderr.write(f"[rank {comm.rank}] {where}:\n{traceback.format_exc()}")
+        sys.stderr.flush()
     time.sleep(0.2)  # let the launcher forward the traceback before Abort tears the job down
     comm.Abort(1)
     os._exit(1)  # MPICH's Abort can return once it has told the process manager
@@ -227,6 +232,7 @@ class Coordinator:
         self._watchdog: _Watchdog | None = None  # the leader's, while the watchdog is on
         self._done: MPI.Prequest | None = None  # a follower's report of a finished call
         self._done_sequence = np.zeros(1, dtype=np.int32)
+        self._failed = np.zeros(1, dtype=np.int32)  # the leader's word that its call failed
         self._unreported = False  # a finished call waits for the previous report to go out
         self._next_report = 0.0  # time.monotonic() of the next report
         self.objects: dict[Hashable, Any] = {}
@@ -386,14 +392,25 @@ class Coordinator:
             except CollectiveError:
                 pass  # the leader raises it too, and its caller decides
             except BaseException:
-                # Give a leader that fails in the same call the chance to abort first, so
-                # that the traceback is printed once.
-                time.sleep(1.0)
+                # The same call often fails on every rank: the traceback is printed once, by
+                # the leader if it says it failed too, else here.
+                if self._leader_failed(LEADER_FAILED_GRACE_S):
+                    time.sleep(LEADER_FAILED_GRACE_S)  # the leader's abort normally ends us here
+                    _fail(self.comm, None)
                 _fail(self.comm, "exception in a parallel method on a follower")
             if self._done is not None:
                 self._unreported = True
                 if time.monotonic() >= self._next_report:
                     self._report()
+
+    def _leader_failed(self, seconds: float) -> bool:
+        """Whether the leader says, within ``seconds``, that its call failed as well."""
+        deadline = time.monotonic() + seconds
+        while not self._channel.Iprobe(0, _FAILED_TAG):
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return True
 
     def _report(self) -> None:
         """Tell the leader's watchdog the last call this follower finished, unless the previous
@@ -419,6 +436,8 @@ class Coordinator:
         except BaseException:
             if self.depth == 1 and self.rank == 0 and self.size > 1:
                 # The followers may be waiting in a collective of this call: end them all.
+                for rank in range(1, self.size):  # those that fail too then keep quiet
+                    self._channel.Isend(self._failed, rank, _FAILED_TAG)
                 _fail(self.comm, "exception in a parallel method on the leader")
             raise
         finally:
