@@ -77,9 +77,8 @@ _HEADER = struct.Struct("<4i")  # route, flags, payload length, sequence number
 _STOP, _FAIL, _EXIT = -1, -2, -3  # _EXIT carries the leader's exit status in the flags
 _PICKLE, _CLOUDPICKLE, _DEFINE = 1, 2, 4
 _TAG, _DONE_TAG, _FAILED_TAG = 17, 18, 19
-LEADER_FAILED_GRACE_S = (
-    2.0  # a failing follower waits this long for word that the leader failed too
-)
+# A failing follower waits this long for word that the leader failed in the same call.
+LEADER_FAILED_GRACE_S = 2.0
 REPORT_S = 0.01  # a follower under the watchdog reports finished calls at most this often
 INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
 
