@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from physicsrl.builders import make_q_network
+from physicsrl.checks import integer, positive
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.dojo import Dojo
@@ -35,7 +36,6 @@ from physicsrl.envs import (
     Transition,
 )
 from physicsrl.envs.baselines import Constant
-from physicsrl.envs.config import integer, positive
 from physicsrl.evaluation import compare
 from physicsrl.fem import HeatEnvironment
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows

@@ -23,7 +23,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from physicsrl.envs.config import integer, number, positive
+from physicsrl.checks import integer, number, positive
 
 HELD_OUT_START = 1_000_000_000
 SEEDS_PER_RUN = 1_000_000

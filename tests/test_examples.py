@@ -1,5 +1,6 @@
 """The README's examples run and do what they claim; every example runs on 1 and 2 ranks."""
 
+import functools
 import re
 import subprocess
 import sys
@@ -7,31 +8,48 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT
+from tests.conftest import ROOT, run_mpi
+
+PAIR = r"([a-zA-Z ]+): (-?[0-9.]+)"
 
 EXAMPLES = sorted((ROOT / "examples").glob("*.py"))
-SMOKE = {"thermostat.py": ["2"], "sb3_heat.py": ["--steps", "300", "env.mesh.cells=8"]}
+# The arguments of a short run of each example, by ranks: the thermostat's 40 iterations on
+# 2 ranks also train it (test below).
+SMOKE = {
+    "thermostat.py": {1: ["2"], 2: ["40"]},
+    "sb3_heat.py": dict.fromkeys((1, 2), ["--steps", "300", "env.mesh.cells=8"]),
+}
+
+
+@functools.cache
+def run_example(name: str, ranks: int) -> str:
+    """The standard output of a short run of the example ``name`` on ``ranks`` ranks: serially
+    (1) or under ``mpiexec -n 2`` (2). Each run is made once, for every test that reads it."""
+    arguments = [str(ROOT / "examples" / name), *SMOKE.get(name, {}).get(ranks, [])]
+    if ranks == 2:
+        return run_mpi(2, *arguments, timeout=300).stdout
+    result = subprocess.run(
+        [sys.executable, *arguments], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    assert result.returncode == 0, result.stderr
+    return result.stdout
 
 
 @pytest.mark.parametrize("ranks", [1, 2])
 @pytest.mark.parametrize("example", EXAMPLES, ids=lambda path: path.name)
-def test_every_example_runs(mpi, example, ranks):
+def test_every_example_runs(example, ranks):
     """A short run of each example (its smoke arguments), serially and under mpiexec -n 2."""
-    arguments = [str(example), *SMOKE.get(example.name, [])]
-    if ranks == 1:
-        result = subprocess.run(
-            [sys.executable, *arguments], capture_output=True, text=True, timeout=300, cwd=ROOT
-        )
-        assert result.returncode == 0, result.stderr
-    else:
-        mpi(2, *arguments, timeout=300)
+    run_example(example.name, ranks)
 
 
-def test_thermostat_example_trains_a_policy_better_than_both_constant_ones(mpi):
-    result = mpi(2, "examples/thermostat.py", "40", timeout=600)
-    returns = dict(re.findall(r"([a-zA-Z ]+): (-?[0-9.]+)", result.stdout.splitlines()[-1]))
-    returns = {name.strip(): float(value) for name, value in returns.items()}
+def test_thermostat_example_trains_a_policy_better_than_both_constant_ones():
+    last = run_example("thermostat.py", 2).splitlines()[-1]
+    returns = {name.strip(): float(value) for name, value in re.findall(PAIR, last)}
     assert returns["greedy DQN"] > max(returns["heater off"], returns["heater on"]), returns
+
+
+def test_sb3_example_compares_its_agent_with_the_exact_optimum():
+    assert "exact optimum" in run_example("sb3_heat.py", 1)
 
 
 def test_readme_quickstart_runs_under_mpi(mpi, tmp_path):

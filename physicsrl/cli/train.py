@@ -36,8 +36,8 @@ def check_run(cfg) -> None:
     if cfg.env.get("factory"):
         check_memory(config, {}, n_actions=2)
         return
+    from physicsrl.checks import build, plain
     from physicsrl.envs import OBSERVATIONS, REWARDS, TASKS
-    from physicsrl.envs.config import build, plain
     from physicsrl.envs.task import SquareMesh
 
     groups = plain(cfg)

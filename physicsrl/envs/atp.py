@@ -50,9 +50,9 @@ from typing import ClassVar
 
 import numpy as np
 
+from physicsrl.checks import choice, integer, interval, number, positive, vector
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.envs.baselines import atp_baselines
-from physicsrl.envs.config import choice, integer, interval, number, positive, vector
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
 from physicsrl.envs.snapshots import SnapshotCache

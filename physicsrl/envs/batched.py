@@ -32,8 +32,8 @@ from tensordict import TensorDict
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from physicsrl.checks import build, choice, integer, plain
 from physicsrl.envs.atp import SHOCK, ATPConfig, ATPTask, ResetSampler
-from physicsrl.envs.config import build, choice, integer, plain
 from physicsrl.envs.observations import OBSERVATIONS, Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
 from physicsrl.envs.rewards import REWARDS, Reward

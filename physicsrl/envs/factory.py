@@ -18,8 +18,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from physicsrl.checks import build, plain
 from physicsrl.coordinated import Coordinator
-from physicsrl.envs.config import build, plain
 from physicsrl.envs.env import PhysicsEnv
 from physicsrl.envs.observations import OBSERVATIONS
 from physicsrl.envs.rewards import REWARDS

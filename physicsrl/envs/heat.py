@@ -18,9 +18,9 @@ from typing import ClassVar
 
 import numpy as np
 
+from physicsrl.checks import integer, interval, number, positive
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.envs.baselines import Constant, HeatOptimal
-from physicsrl.envs.config import integer, interval, number, positive
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
 from physicsrl.fem import HeatEnvironment, SimulationDiverged

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from dolfinx import fem
 
-from physicsrl.envs.config import integer, number, positive, vector
+from physicsrl.checks import integer, number, positive, vector
 from physicsrl.envs.registry import Registry
 from physicsrl.fem.integrals import form_rows, point_rows, quadrant_weights
 

@@ -2,7 +2,7 @@
 
 Adding an observation, a reward or a task is one class decorated with
 ``@REGISTRY.register("name")`` plus one YAML file whose ``name`` is that name; the other keys of
-the YAML are the class's config fields (see :func:`physicsrl.envs.config.build`). A class
+the YAML are the class's config fields (see :func:`physicsrl.checks.build`). A class
 outside the package is found through the YAML's ``module`` key: a module name
 (``mylab.tasks``) or a ``.py`` file (relative to the working directory) imported, once, before
 the name is looked up (``examples/thermostat.py`` and its YAML in ``examples/conf/``).
@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from physicsrl.envs.config import plain
+from physicsrl.checks import plain
 
 
 class Registry:

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import ClassVar
 
-from physicsrl.envs.config import number
+from physicsrl.checks import number
 from physicsrl.envs.registry import Registry
 
 REWARDS = Registry("reward")

@@ -20,8 +20,8 @@ import numpy as np
 from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
+from physicsrl.checks import choice, integer, positive
 from physicsrl.coordinated import Coordinated, parallel
-from physicsrl.envs.config import choice, integer, positive
 from physicsrl.envs.registry import Registry
 
 TASKS = Registry("env")
