@@ -245,6 +245,7 @@ class Coordinator:
         self._message = bytearray(_HEADER.size + INLINE_BYTES)
         self._view = memoryview(self._message)
         self._sequence = 0
+        self.broadcast_s = 0.0  # the leader's seconds in broadcast(), in total: coordination
         self._sending: list[MPI.Prequest] = []
         self._receiving: MPI.Prequest | None = None
         self._trace: list[str] = []
@@ -301,6 +302,7 @@ class Coordinator:
         """
         if not (self._inside and self.rank == 0):
             raise CoordinationError("broadcast() is for the leader inside 'with coordinator'")
+        started = time.perf_counter()
         flags = 0
         payload = b""
         if args or kwargs:
@@ -313,6 +315,7 @@ class Coordinator:
             flags |= _DEFINE
             self._routes[(namespace, name)] = route
         self._send(route, flags, payload)
+        self.broadcast_s += time.perf_counter() - started
 
     def _send(self, route: int, flags: int, payload: bytes) -> None:
         n = len(payload)

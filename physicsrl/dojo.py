@@ -24,7 +24,6 @@ is deterministic given its seed.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import signal
@@ -230,9 +229,7 @@ class Dojo:
         self._checkpoint_failed = False
         self._pending_rng: dict | None = None
         self._collector: Collector | None = None
-        self._coordination_s = 0.0
-        if coordinator is not None and getattr(coordinator, "size", 1) > 1:
-            self._time_coordination(coordinator)
+        self.coordinator = coordinator
 
     # the loop -----------------------------------------------------------------------------
     def train(self, iterations: int, handle_signals: bool = True) -> dict:
@@ -261,11 +258,12 @@ class Dojo:
         try:
             while self.counters.iteration < iterations and self._stop_reason is None:
                 # 1. collect a batch with the exploration policy (the simulation runs here)
-                started, coordination = time.perf_counter(), self._coordination_s
+                started, sent = time.perf_counter(), self._broadcast_s()
                 data = next(batches).exclude("collector")
                 collect_s = time.perf_counter() - started
-                self._add_time("coordination", self._coordination_s - coordination)
-                self._add_time("simulation", collect_s - (self._coordination_s - coordination))
+                coordination_s = self._broadcast_s() - sent
+                self._add_time("coordination", coordination_s)
+                self._add_time("simulation", collect_s - coordination_s)
                 returns = self._record_batch(data)
                 self.exploration[-1].step(data.numel())  # anneal epsilon
                 if len(self.action_costs):
@@ -553,19 +551,9 @@ class Dojo:
     def _add_time(self, phase: str, seconds: float) -> None:
         self.counters.time_s[phase] = self.counters.time_s.get(phase, 0.0) + seconds
 
-    def _time_coordination(self, coordinator) -> None:
-        """Count the leader's time spent sending parallel calls to the followers."""
-        broadcast = coordinator.broadcast
-
-        @functools.wraps(broadcast)
-        def timed(*args, **kwargs):
-            started = time.perf_counter()
-            try:
-                return broadcast(*args, **kwargs)
-            finally:
-                self._coordination_s += time.perf_counter() - started
-
-        coordinator.broadcast = timed
+    def _broadcast_s(self) -> float:
+        """The leader's seconds sending parallel calls to the followers so far (0: none)."""
+        return float(getattr(self.coordinator, "broadcast_s", 0.0))
 
     def _install_signal_handlers(self) -> Callable[[], None] | None:
         """SIGINT/SIGTERM: finish the iteration, checkpoint, return (twice: interrupt now)."""

@@ -1,4 +1,5 @@
-"""Side-by-side coordinators, sequence checking and idle CPU (argv[1] picks the case)."""
+"""Side-by-side coordinators (and their time sending calls), sequence checking and idle CPU
+(argv[1] picks the case)."""
 
 import sys
 import time
@@ -31,14 +32,20 @@ if case == "side-by-side":
     group = comm.Split(comm.rank % 2, comm.rank)
     coordinator = Coordinator(group)
     node = Node(coordinator)
+    elapsed = 0.0
     with coordinator:
         if coordinator.is_leader():
+            started = time.perf_counter()
             for i in range(50):
                 node.record((comm.rank % 2, i))
+            elapsed = time.perf_counter() - started
     seen = comm.gather(node.seen, root=0)
+    timings = comm.gather((coordinator.is_leader(), coordinator.broadcast_s, elapsed), root=0)
     if comm.rank == 0:
         for rank, values in enumerate(seen):
             assert values == [(rank % 2, i) for i in range(50)], (rank, values)
+        for leader, sending, total in timings:  # only a leader sends, within its calls' time
+            assert (0 < sending <= total) if leader else sending == 0, (leader, sending, total)
         print("ok", file=sys.stderr)
 
 elif case == "divergence":
