@@ -69,19 +69,20 @@ with env.task.coordinator:
 
 def test_draws_and_induced_state_same_on_1_and_2_ranks():
     """A seed gives the same draws on every call, and the same induced state (the catheter's
-    readings, to round-off) on 1 and 2 ranks."""
-    runs = [json.loads(run_mpi(n, "-c", SAME_ON_RANKS).stdout.splitlines()[-1]) for n in (1, 2)]
-    assert runs[0]["draws"] == runs[1]["draws"]
+    readings, to round-off) on 1 rank (in this process) and 2 ranks."""
     task = resolved_env().task
-    assert task.draw(np.random.default_rng(7)) == tuple(runs[0]["draws"])
+    with task.coordinator:
+        draws = task.draw(np.random.default_rng(7))
+        reading = task.reset(*draws)
+    assert task.draw(np.random.default_rng(7)) == draws
     f = task.config.cross_field
     assert all(
         low <= x <= high
-        for x, (low, high) in zip(
-            runs[0]["draws"], (f.s2_delay, f.s2_edge, f.s2_bottom), strict=True
-        )
+        for x, (low, high) in zip(draws, (f.s2_delay, f.s2_edge, f.s2_bottom), strict=True)
     )
-    np.testing.assert_allclose(runs[0]["reading"], runs[1]["reading"], rtol=1e-9, atol=1e-12)
+    two_ranks = json.loads(run_mpi(2, "-c", SAME_ON_RANKS).stdout.splitlines()[-1])
+    assert tuple(two_ranks["draws"]) == draws
+    np.testing.assert_allclose(reading, two_ranks["reading"], rtol=1e-9, atol=1e-12)
 
 
 def test_snapshot_library_round_trips_through_disk(tmp_path):
