@@ -2,6 +2,7 @@
 
 import csv
 import json
+import runpy
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +20,18 @@ TINY = [
     "logger.progress=false",
     "env.mesh.cells=8",
 ]
+
+
+def run_script(name: str, *arguments: str) -> None:
+    """``python experiments/<name> *arguments``, run in this process (one MPI rank): the same
+    code as from the shell, without a new interpreter's imports."""
+    script = ROOT / "experiments" / name
+    argv = sys.argv
+    sys.argv = [str(script), *arguments]
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    finally:
+        sys.argv = argv
 
 
 def compose(*overrides: str, section: str = "job") -> str:
@@ -92,11 +105,9 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
 
 def test_atp_baselines_script_tables_each_policy(tmp_path):
     """The baseline script on a small ATP preset: one row per policy, shocks as scheduled."""
-    script = ROOT / "experiments" / "atp_baselines.py"
     small = ["env.mesh.cells=20", "env.max_decisions=4", "env.extra_waits=2"]
-    command = [sys.executable, str(script), "--seeds", "2", "--select-seeds", "1"]
-    command += ["--policies", "never,always,single", "--out", str(tmp_path), *small]
-    subprocess.run(command, check=True, capture_output=True, timeout=300, cwd=tmp_path)
+    arguments = ["--seeds", "2", "--select-seeds", "1", "--policies", "never,always,single"]
+    run_script("atp_baselines.py", *arguments, "--out", str(tmp_path), *small)
     rows = {r["policy"]: r for r in csv.DictReader((tmp_path / "atp_baselines.csv").open())}
     assert list(rows)[:2] == ["never shock", "always shock"] and len(rows) == 3
     assert float(rows["never shock"]["shocks"]) == 0 and float(rows["always shock"]["shocks"]) == 4
@@ -109,11 +120,10 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
     """--open-loop on a small ATP preset: one row per open-loop schedule with its shocks as
     scheduled; --resume keeps the rows already there (a marked row survives) and recomputes
     the missing ones to the same values."""
-    script = ROOT / "experiments" / "atp_baselines.py"
     small = ["env.mesh.cells=20", "env.max_decisions=3", "env.extra_waits=1"]
     small += ["env.decision_interval=10", "env.shock.duration=5"]
-    command = [sys.executable, str(script), "--seeds", "1", "--open-loop", "--out", str(tmp_path)]
-    subprocess.run([*command, *small], check=True, capture_output=True, timeout=300)
+    arguments = ["--seeds", "1", "--open-loop", "--out", str(tmp_path)]
+    run_script("atp_baselines.py", *arguments, *small)
     per_seed = tmp_path / "atp_open_loop_per_seed.csv"
     rows = list(csv.DictReader(per_seed.open()))
     assert len(rows) == 2 + 3 + sum(range(2, 7))  # never, always, 3 singles, every k from o
@@ -132,7 +142,7 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
         writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows([marked, *kept[1:]])
-    subprocess.run([*command, "--resume", *small], check=True, capture_output=True, timeout=300)
+    run_script("atp_baselines.py", *arguments, "--resume", *small)
     again = list(csv.DictReader(per_seed.open()))
     assert again[0]["return"] == "12345.0"
     assert [dict(r, **{"return": "x"}) for r in again[1:]] == [
@@ -147,14 +157,12 @@ def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
     """The convergence script on a small grid, resuming a study with one row done (marked):
     that row is kept, and one row per other (policy, seed) is appended, with the scheduled
     shocks."""
-    script = ROOT / "experiments" / "atp_convergence.py"
     small = [o for o in SMALL_ATP if not o.startswith("env.mesh.cells")]
     results = tmp_path / "atp_convergence.csv"
     done = "cells,scheme,policy,seed,return,success,shocks,length\n"
     results.write_text(done + "20,implicit,never,1000000000,-7.0,0.0,0,3\n")
-    command = [sys.executable, str(script), "--cells", "20", "--policies", "never,single0"]
-    command += ["--seeds", "2", "--out", str(tmp_path), *small]
-    subprocess.run(command, check=True, capture_output=True, timeout=300)
+    arguments = ["--cells", "20", "--policies", "never,single0", "--seeds", "2"]
+    run_script("atp_convergence.py", *arguments, "--out", str(tmp_path), *small)
     rows = [
         (r["policy"], r["seed"][-1], r["shocks"], r["return"])
         for r in csv.DictReader(results.open())
