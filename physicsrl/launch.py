@@ -6,8 +6,9 @@ under the ``mpiexec`` that belongs to the installed MPI. All ranks then agree on
 directory (Hydra's default is a per-process timestamp, and ranks start seconds apart), only the
 leader writes Hydra's files and logs, and an exception on any rank ends every rank with a
 non-zero exit instead of leaving the others waiting (Hydra alone would catch it and exit 1).
-Bad launch requests (``mpi.ranks=abc``, a run directory that cannot be written) end every rank
-with status 2 and one line from the leader, before any work.
+Bad launch requests (``mpi.ranks=abc``, ``mpi.ranks_per_env`` that does not divide the ranks
+into groups, a run directory that cannot be written) end every rank with status 2 and one line
+from the leader, before any work.
 """
 
 from __future__ import annotations
@@ -133,3 +134,17 @@ def output_dir() -> Path:
     from hydra.core.hydra_config import HydraConfig
 
     return Path(HydraConfig.get().runtime.output_dir)
+
+
+def check_layout(ranks_per_env: int, world_size: int) -> None:
+    """ValueError in one line unless ``ranks_per_env`` is a divisor of ``world_size``."""
+    if not (isinstance(ranks_per_env, int) and 1 <= ranks_per_env <= world_size):
+        raise ValueError(
+            f"mpi.ranks_per_env={ranks_per_env!r} must be an integer from 1 to the job's "
+            f"{world_size} ranks"
+        )
+    if world_size % ranks_per_env:
+        raise ValueError(
+            f"mpi.ranks_per_env={ranks_per_env} does not divide the job's {world_size} ranks "
+            "into groups"
+        )

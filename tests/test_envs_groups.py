@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from conftest import run_mpi
 
-from physicsrl.envs.groups import check_layout, member_seed
+from physicsrl.envs.groups import member_seed
+from physicsrl.launch import check_layout
 
 
 @pytest.mark.parametrize(("ranks", "per_env"), [(2, 1), (4, 2), (2, 2)])

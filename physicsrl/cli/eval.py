@@ -28,13 +28,15 @@ def check(cfg) -> None:
 
     from omegaconf import OmegaConf
 
-    from physicsrl.checkpoint import checkpoint_file
-    from physicsrl.envs.groups import check_layout
-    from physicsrl.launch import launched_size
+    from physicsrl.launch import check_layout, launched_size
 
     check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
+    if not Path(str(cfg.run)).expanduser().exists():
+        raise ValueError(f"run={cfg.run}: no checkpoint file there or under its checkpoints/")
+    from physicsrl.checkpoint import checkpoint_file  # TorchRL (~6 s): for a path that exists
+
     checkpoint_file(str(cfg.run))
     if cfg.fields and importlib.util.find_spec("adios2") is None:
         raise ValueError("fields=true reads the series back with adios2: pip install adios2")

@@ -16,8 +16,7 @@ from physicsrl.cli import command
 
 def check_task(cfg) -> None:
     """The layout of environments over the job's ranks, then :func:`check_run`."""
-    from physicsrl.envs.groups import check_layout
-    from physicsrl.launch import launched_size
+    from physicsrl.launch import check_layout, launched_size
 
     check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
     check_run(cfg)

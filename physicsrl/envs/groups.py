@@ -45,6 +45,7 @@ from torchrl import timeit
 from torchrl.envs import EnvBase
 
 from physicsrl.coordinated import Coordinator, wait_for
+from physicsrl.launch import check_layout
 
 __all__ = ["GroupedEnv", "Layout", "environments", "member_seed", "serve", "spread_episodes"]
 
@@ -82,20 +83,6 @@ class Layout:
         is_leader = comm.rank == 0
         leaders = world.Split(0 if is_leader else MPI.UNDEFINED, world.rank)
         return cls(world, ranks_per_env, world.size // ranks_per_env, group, comm, leaders)
-
-
-def check_layout(ranks_per_env: int, world_size: int) -> None:
-    """ValueError in one line unless ``ranks_per_env`` is a divisor of ``world_size``."""
-    if not (isinstance(ranks_per_env, int) and 1 <= ranks_per_env <= world_size):
-        raise ValueError(
-            f"mpi.ranks_per_env={ranks_per_env!r} must be an integer from 1 to the job's "
-            f"{world_size} ranks"
-        )
-    if world_size % ranks_per_env:
-        raise ValueError(
-            f"mpi.ranks_per_env={ranks_per_env} does not divide the job's {world_size} ranks "
-            "into groups"
-        )
 
 
 def _numpy(td: TensorDictBase) -> dict:
