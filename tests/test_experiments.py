@@ -6,6 +6,7 @@ import runpy
 import subprocess
 import sys
 from pathlib import Path
+from unittest import mock
 
 from physicsrl.checkpoint import checkpoint_file, read
 from tests.conftest import ROOT, SMALL_ATP
@@ -26,12 +27,8 @@ def run_script(name: str, *arguments: str) -> None:
     """``python experiments/<name> *arguments``, run in this process (one MPI rank): the same
     code as from the shell, without a new interpreter's imports."""
     script = ROOT / "experiments" / name
-    argv = sys.argv
-    sys.argv = [str(script), *arguments]
-    try:
+    with mock.patch.object(sys, "argv", [str(script), *arguments]):
         runpy.run_path(str(script), run_name="__main__")
-    finally:
-        sys.argv = argv
 
 
 def compose(*overrides: str, section: str = "job") -> str:
