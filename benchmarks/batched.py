@@ -21,7 +21,6 @@ import argparse
 import os
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import physicsrl.fem  # noqa: F401  (first: loads the MPI library)
@@ -54,8 +53,7 @@ def reference_rate(domain, scheme: str, steps: int) -> float:
 
 def batched_rate(domain, scheme: str, replicas: int, steps: int, device: str):
     """(replica-steps per second, CG iterations per step) of the torch loop."""
-    model = {**asdict(MSModel()), "scheme": scheme}
-    del model["warn_resolution"]  # an env setting
+    model = {**MSModel().numerics(), "scheme": scheme}
     sim = BatchedMonodomain(domain, **model, device=device)
     u = sim.nodal(front).expand(replicas, -1).clone()
     w = torch.ones_like(u)

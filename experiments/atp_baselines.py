@@ -41,7 +41,7 @@ from physicsrl import builders
 from physicsrl.cli.command import compose
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
-from physicsrl.envs.baselines import atp_baselines, open_loop_schedules
+from physicsrl.envs.baselines import atp_baselines, decisions, open_loop_schedules
 from physicsrl.envs.groups import environments
 from physicsrl.evaluation import mean_metrics, run_episodes, write_csv
 
@@ -74,7 +74,7 @@ def main() -> None:
         seeds = held_out_seeds(args.seeds)
         done = previous_rows(args.out / name, settings) if args.resume else {}
         if args.open_loop:
-            policies = open_loop_schedules(env.task.max_steps)
+            policies = open_loop_schedules(decisions(env))
         else:
             single = args.single_shock if "single" in keep else 0  # 0: no search when unused
             policies = atp_baselines(env, seeds[: args.select_seeds], single_shock=single)

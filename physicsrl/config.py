@@ -286,12 +286,18 @@ def transition_bytes(input_bytes: int, n_actions: int) -> int:
     return 2 * input_bytes + 8 + 4 * (n_actions + 1) + 4 + 2 * 3
 
 
-def check_memory(config: TrainConfig, inputs: dict[str, tuple[int, int]], n_actions: int) -> None:
+def check_memory(
+    config: TrainConfig,
+    inputs: dict[str, tuple[int, int]],
+    n_actions: int,
+    others: dict[str, tuple[float, str]] | None = None,
+) -> None:
     """ValueError naming ``agent.network.hidden`` or ``buffer.size`` if the Q-network
     (:data:`BYTES_PER_PARAMETER` per parameter) or the replay buffer (``buffer.size`` x
     :func:`transition_bytes`) would need more than ``max_memory_gb`` (10^9 bytes; a memory-mapped
-    buffer: disk). ``inputs``: the env's observation keys, each (numbers per step, bytes each);
-    a network input missing from it counts as one number."""
+    buffer: disk), or naming a setting of ``others`` (setting -> (bytes, how)) over it.
+    ``inputs``: the env's observation keys, each (numbers per step, bytes each); a network
+    input missing from it counts as one number."""
     network = config.agent.network
     n_inputs = sum(inputs.get(key, (1, 4))[0] for key in network.inputs)
     parameters = network_parameters(n_inputs, network.hidden, n_actions)
@@ -305,6 +311,7 @@ def check_memory(config: TrainConfig, inputs: dict[str, tuple[int, int]], n_acti
             config.buffer.size * per_transition,
             f"{per_transition} bytes per transition",
         ),
+        **(others or {}),
     }
     for setting, (size, how) in needs.items():
         if size > config.max_memory_gb * 1e9:

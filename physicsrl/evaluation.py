@@ -18,7 +18,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from physicsrl.envs.groups import GroupedEnv, spread_episodes
+from physicsrl.envs.members import Members, spread_episodes
 
 STANDARD_KEYS = {"observation", "reward", "done", "terminated", "truncated", "step"}
 MAX_STEPS = 10_000  # a safety bound on episodes of envs that never end
@@ -73,11 +73,11 @@ def run_episode(
 def run_episodes(
     env: EnvBase, policy: Callable, seeds: Iterable[int], action_counts: Mapping[str, int] = ()
 ) -> list[dict]:
-    """:func:`run_episode` for each seed; the environments of a
-    :class:`~physicsrl.envs.groups.GroupedEnv` share the seeds (K seeds on N environments take
-    about K / N episode times) and give the same rows."""
+    """:func:`run_episode` for each seed; the members of a batch
+    (:class:`~physicsrl.envs.members.Members`: groups, replicas) share the seeds (K seeds on N
+    members take about K / N episode times) and give the same rows."""
     seeds = [int(s) for s in seeds]
-    if not isinstance(env, GroupedEnv):
+    if not isinstance(env, Members):
         return [run_episode(env, policy, s, action_counts) for s in seeds]
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         rollouts = spread_episodes(env, policy, seeds, MAX_STEPS)

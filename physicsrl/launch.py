@@ -148,3 +148,13 @@ def check_layout(ranks_per_env: int, world_size: int) -> None:
             f"mpi.ranks_per_env={ranks_per_env} does not divide the job's {world_size} ranks "
             "into groups"
         )
+
+
+def check_backend(backend: str | None, world_size: int) -> None:
+    """ValueError in one line if ``env.model.backend`` is ``torch`` on more than one rank: its
+    replicas (``env.replicas``) run on one rank; spreading them over groups is not built."""
+    if backend == "torch" and world_size > 1:
+        raise ValueError(
+            f"env.model.backend=torch runs its env.replicas on one MPI rank, got {world_size} "
+            "ranks (spreading replicas over groups of ranks is not built)"
+        )

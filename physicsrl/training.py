@@ -32,7 +32,8 @@ from physicsrl.checkpoint import Checkpoints, find_run
 from physicsrl.cli.bench import format_table
 from physicsrl.config import TrainConfig, as_dict, typed
 from physicsrl.dojo import Dojo, NonFiniteTraining
-from physicsrl.envs.groups import GroupedEnv, environments
+from physicsrl.envs.groups import environments
+from physicsrl.envs.members import Members
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
 from physicsrl.launch import output_dir
@@ -82,13 +83,14 @@ def train(cfg) -> None:
         raise SystemExit(130 if "SIGINT" in stopped else 143 if "SIGTERM" in stopped else 1)
 
 
-def task_of(env) -> Task | None:
-    """The :class:`~physicsrl.envs.task.Task` behind ``env`` (group 0's, for many
-    environments), if it has one (its hooks name the baselines, action counts and score
-    lines)."""
-    # not getattr: EnvBase.__getattr__ searches further (a GroupedEnv has group 0's task)
-    task = env.task if isinstance(env, GroupedEnv) else vars(env).get("task")
-    return task if isinstance(task, Task) else None
+def task_of(env) -> Task | type[Task] | None:
+    """The :class:`~physicsrl.envs.task.Task` behind ``env`` (group 0's for many environments,
+    the task's class for replicas), if it has one: its hooks name the baselines, action counts
+    and score lines."""
+    # not getattr: EnvBase.__getattr__ searches further
+    task = env.task if isinstance(env, Members) else vars(env).get("task")
+    is_class = isinstance(task, type) and issubclass(task, Task)
+    return task if is_class or isinstance(task, Task) else None
 
 
 def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None = None) -> Dojo:
@@ -137,7 +139,7 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     """Train (continuing from the checkpoint ``resume``, in its run directory), print the
     summary, write ``summary.json``; return the stop reason, if any."""
     task = task_of(env)
-    coordinator = task.coordinator if task else None  # group 0's: its time is logged
+    coordinator = task.coordinator if isinstance(task, Task) else None  # its time is logged
     ranks, per_env = MPI.COMM_WORLD.size, config.mpi.ranks_per_env
     log_dir = run_dir if resume is None else resume.parent.parent
     log.info(
@@ -191,8 +193,8 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
 
 
 def n_environments(env) -> int:
-    """N: the environments behind ``env`` (a batched env's batch size, else 1)."""
-    return env.batch_size[0] if isinstance(env, GroupedEnv) else 1
+    """N: the environments behind ``env`` (a batch's members, else 1)."""
+    return env.batch_size[0] if isinstance(env, Members) else 1
 
 
 def check_environments(before: int, n_envs: int) -> None:

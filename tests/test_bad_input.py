@@ -103,6 +103,18 @@ ROWS = [
     ("train", ["env=ms", "reward=heat_stop"], "reward=heat_stop does not fit the atp task"),
     ("train", ["env=ms", "agent.network.inputs=[observation,nosuch]"], "'nosuch'"),
     ("train", ["eval.seeds=[3]"], "eval.seeds [3] are also training seeds"),
+    ("train", ["env=ms", "env.replicas=4"], "env.replicas must be 1 with model.backend=petsc"),
+    ("train", ["env=ms", "env.model.backend=jax"], "env.model.backend must be one of petsc, torch"),
+    (
+        "train",
+        ["env=ms", "env.model.backend=torch", "env.induction=cross_field"],
+        "model.backend=torch induces the report's arrhythmia with a fixed rest only",
+    ),
+    (
+        "train",
+        ["env=ms", "env.model.backend=torch", "env.replicas=10000000"],
+        "env.replicas=10000000 would need about 1.79e+03 GB (48 bytes per replica and dof)",
+    ),
     # physicsrl-eval
     ("eval", ["fps=0"], "fps must be a finite number > 0"),
     ("eval", ["fps=nan"], "fps must be a finite number > 0"),
@@ -191,6 +203,7 @@ PROCESSES = [
     (1, ["physicsrl-train", "agent.network.hidden=[1000000000]"], "would need about 140 GB"),
     (2, ["physicsrl-train", "-m", "iterations=-5,3"], "(sweep job 1 of 2: iterations=-5)"),
     (2, ["physicsrl-train", "observation=catheter"], "catheter does not fit the heat task"),
+    (2, ["physicsrl-train", "env=ms", "env.model.backend=torch"], "on one MPI rank, got 2 ranks"),
     (2, ["physicsrl-eval", f"run={RUN}", 'overrides=["nosuch=1"]'], "unknown key 'nosuch'"),
 ]
 

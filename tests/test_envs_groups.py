@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import run_mpi
 
-from physicsrl.envs.groups import member_seed
+from physicsrl.envs.members import member_seed
 from physicsrl.launch import check_layout
 
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import physicsrl.fem  # noqa: F401  (first: loads the MPI library that dolfinx links to)
 
 # isort: split
@@ -21,8 +19,7 @@ from physicsrl.envs.task import SquareMesh
 from physicsrl.fem import InvalidValue, MonodomainMitchellSchaeffer
 from physicsrl.fem.batched import BatchedMonodomain
 
-MODEL = asdict(MSModel())  # the report's parameters (implicit)
-del MODEL["warn_resolution"]  # an env setting
+MODEL = MSModel().numerics()  # the report's parameters (implicit)
 DT = MODEL["dt"]
 
 

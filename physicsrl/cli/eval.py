@@ -116,7 +116,10 @@ def field_recorder(env, coordinator, path: Path):
 
     simulator = getattr(vars(env).get("task"), "simulator", None)
     if simulator is None:
-        refuse_config("fields=true needs a physics task's env (env.factory's has no fields)")
+        refuse_config(
+            "fields=true needs a physics task's env on the PETSc backend (env.factory's envs "
+            "and env.model.backend=torch have no fields)"
+        )
     if not coordinator.comm.bcast(MPI.COMM_WORLD.rank == 0, root=0):
         return None
     functions = [simulator.u_n(), *([simulator.w_n()] if hasattr(simulator, "w_n") else [])]
@@ -127,10 +130,11 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     from physicsrl import learning_curve
     from physicsrl.cli.bench import format_table
     from physicsrl.config import held_out_seeds
+    from physicsrl.envs.env import PhysicsEnv
     from physicsrl.envs.groups import GroupedEnv
     from physicsrl.evaluation import compare, write_csv
     from physicsrl.fem.output import render_series
-    from physicsrl.training import baselines, make_dojo, rounded, task_of
+    from physicsrl.training import baselines, make_dojo, rounded
 
     dojo = make_dojo(train_cfg, env)
     dojo.q_network.load_state_dict(state["q_network"])
@@ -166,7 +170,9 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
             f"fields of seed {seed} ({', '.join(series.values)} at {len(series.times)} times): "
             f"{recorder.path} (ParaView), last u: {directory / 'fields.png'}"
         )
-    if cfg.gif and task_of(env) is not None:
+    if cfg.gif and not isinstance(single, PhysicsEnv):
+        print("no episode GIF: it needs a physics task's env on the PETSc backend")
+    elif cfg.gif:
         gif = episode_gif(single, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
         print(
             f"episode of seed {seed}: actions {gif['actions']}, return {sum(gif['rewards']):.3f}: "

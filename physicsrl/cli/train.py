@@ -15,11 +15,20 @@ from physicsrl.cli import command
 
 
 def check_task(cfg) -> None:
-    """The layout of environments over the job's ranks, then :func:`check_run`."""
-    from physicsrl.launch import check_layout, launched_size
+    """The layout of environments over the job's ranks and the backend's (replicas run on one
+    rank), then :func:`check_run`."""
+    from omegaconf import OmegaConf
 
-    check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
+    from physicsrl.launch import check_backend, check_layout, launched_size
+
+    ranks = launched_size() or 1
+    check_layout(cfg.mpi.ranks_per_env, ranks)
+    check_backend(OmegaConf.select(cfg, "env.model.backend"), ranks)
     check_run(cfg)
+
+
+STATE_BYTES_PER_DOF = 6 * 8
+"""The torch backend's memory per replica and dof: u, w and the step's temporaries (float64)."""
 
 
 def check_run(cfg) -> None:
@@ -64,7 +73,11 @@ def check_run(cfg) -> None:
             f"agent.network.inputs: {unknown[0]!r} is not an observation key of the "
             f"{task.name} task (its keys: {', '.join(inputs)})"
         )
-    check_memory(config, inputs, task.n_actions)
+    replicas = getattr(task_config, "replicas", 1)
+    dofs = (mesh.cells + 1) ** 2 if isinstance(mesh, SquareMesh) else 0
+    state = replicas * dofs * STATE_BYTES_PER_DOF if replicas > 1 else 0
+    how = f"{STATE_BYTES_PER_DOF} bytes per replica and dof"
+    check_memory(config, inputs, task.n_actions, {f"env.replicas={replicas}": (state, how)})
 
 
 def env_inputs(task, observation) -> dict[str, tuple[int, int]]:

@@ -63,14 +63,18 @@ from physicsrl.fem.monodomain import SCHEMES
 from physicsrl.fem.resolution import report
 
 WAIT, SHOCK = 0, 1
+BACKENDS = ("petsc", "torch")
+"""``env.model.backend`` (the first is the default)."""
 
 
 @dataclass(frozen=True)
 class MSModel:
     """Mitchell-Schaeffer parameters (report section 4.3): time constants, gate threshold,
     diffusivity (mm^2/ms), time step, the time scheme with its sub-steps (see
-    :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`), and whether to warn when the mesh
-    does not resolve the front (:func:`physicsrl.fem.resolution.report`)."""
+    :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`), whether to warn when the mesh
+    does not resolve the front (:func:`physicsrl.fem.resolution.report`), and the backend of
+    the time loop: ``petsc`` (DOLFINx/PETSc, distributed over the ranks of a group) or
+    ``torch`` (:mod:`physicsrl.envs.batched`: ``replicas`` copies on one rank, on ``device``)."""
 
     dt: float = 0.03
     tau_in: float = 0.3
@@ -82,6 +86,8 @@ class MSModel:
     scheme: str = "implicit"
     substeps: int = 1
     warn_resolution: bool = True
+    backend: str = BACKENDS[0]
+    device: str = "cpu"
 
     def __post_init__(self):
         for name in ("dt", "tau_in", "tau_out", "tau_open", "tau_close", "D"):
@@ -92,6 +98,15 @@ class MSModel:
         integer("substeps", self.substeps, 1)
         if not isinstance(self.warn_resolution, bool):
             raise ValueError(f"warn_resolution must be true or false, got {self.warn_resolution!r}")
+        choice("backend", self.backend, BACKENDS)
+        choice("device", self.device, ("cpu", "cuda"))
+
+    def numerics(self) -> dict:
+        """The simulator's keyword arguments: the parameters, dt, scheme and sub-steps."""
+        settings = asdict(self)
+        for name in ("warn_resolution", "backend", "device"):
+            del settings[name]
+        return settings
 
 
 @dataclass(frozen=True)
@@ -225,6 +240,7 @@ class ATPConfig:
     extra_waits: int = 20
     region_quadrature_degree: int = 6
     snapshots: Snapshots = field(default_factory=Snapshots)
+    replicas: int = 1
 
     def __post_init__(self):
         positive("decision_interval", self.decision_interval)
@@ -233,6 +249,19 @@ class ATPConfig:
         integer("extra_waits", self.extra_waits)
         integer("region_quadrature_degree", self.region_quadrature_degree, 1)
         choice("induction", self.induction, INDUCTIONS)
+        integer("replicas", self.replicas, 1)
+        if self.model.backend == "petsc" and self.replicas != 1:
+            raise ValueError(
+                f"replicas must be 1 with model.backend=petsc (replicas need model.backend="
+                f"torch; more PETSc environments come from mpi.ranks), got {self.replicas!r}"
+            )
+        fixed_rest = len(set(self.reset.rest_time)) == 1
+        if self.model.backend == "torch" and (self.induction != "report" or not fixed_rest):
+            raise ValueError(
+                f"induction={self.induction!r}, reset.rest_time={list(self.reset.rest_time)}: "
+                "model.backend=torch induces the report's arrhythmia with a fixed rest only "
+                "(induction: report, one rest_time)"
+            )
         if self.shock.duration > self.decision_interval:
             raise ValueError(
                 f"shock.duration must be <= decision_interval = {self.decision_interval}, "
@@ -251,17 +280,16 @@ class ATPTask(Task):
     pairs = ("catheter", "atp")
     action_counts = {"shocks": 1}
 
-    def baselines(self, env, seeds, seed):
+    @staticmethod  # the replicas of the torch backend use the class's hooks
+    def baselines(env, seeds, seed):
         return atp_baselines(env, seeds, seed)
 
     def __init__(self, coordinator: Coordinator, config: ATPConfig, observation: Observation):
         self.config, self.observation = config, observation
         self.max_steps = config.max_decisions
         domain = config.mesh.create(coordinator.comm)
-        model = asdict(config.model)
-        warn = model.pop("warn_resolution")
-        self.simulator = MonodomainMitchellSchaeffer(coordinator, domain, **model)
-        report(self.simulator.resolution, warn)
+        self.simulator = MonodomainMitchellSchaeffer(coordinator, domain, **config.model.numerics())
+        report(self.simulator.resolution, config.model.warn_resolution)
         self.register_coordinator(coordinator)
         V = self.simulator.V
         # Row 0: the integral of u over the domain (success test); then the observation's rows.

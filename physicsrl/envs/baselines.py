@@ -92,6 +92,11 @@ class HeatOptimal(Policy):
         return int(step < self.optimum.best_stop[level])
 
 
+def decisions(env) -> int:
+    """The decisions of one of ``env``'s episodes: the upper bound of its ``step`` key."""
+    return int(env.observation_spec["step"].space.high.max())
+
+
 def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | None, float]]:
     """Try a single shock at every decision (and none) over ``seeds``; return the schedule with
     the best mean return and every schedule's mean (key None: no shock). Snapshot resets make
@@ -104,7 +109,7 @@ def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | N
         return mean_metrics(run_episodes(env, policy, seeds))["return"]
 
     means: dict[int | None, float] = {None: mean_return(Constant(0))}
-    for step in range(env.task.max_steps):
+    for step in range(decisions(env)):
         means[step] = mean_return(Schedule([step]))
     best = max(means, key=means.get)
     return Schedule([] if best is None else [best]), means

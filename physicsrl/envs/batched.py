@@ -2,8 +2,9 @@ r"""The ATP task with B replicas on one process: a TorchRL environment of ``batc
 
 The task of :mod:`physicsrl.envs.atp` (same config, observation, reward, draws and events), its
 time loop on torch (:class:`~physicsrl.fem.batched.BatchedMonodomain`, CPU or CUDA) for all
-replicas at once, on this process's own copy of the mesh (``MPI.COMM_SELF``: under MPI every
-rank owns its replicas, and the batches of the ranks together form the training batch).
+replicas at once, on this process's own copy of the mesh (``MPI.COMM_SELF``). Training and
+evaluation run it on one MPI rank (``mpi.ranks=1``); spreading replicas over N groups is not
+built.
 
 - Reset honours TorchRL's ``"_reset"`` mask: only the replicas it selects start a new episode
   (their rows of u and w are written from the snapshot library, or induced, all new draws of
@@ -13,84 +14,73 @@ rank owns its replicas, and the batches of the ranks together form the training 
   run up to ``extra_waits`` further intervals in a sub-batch. A replica whose state stops being
   finite ends its episode as truncated with ``diverged`` set, as in
   :class:`~physicsrl.envs.env.PhysicsEnv`.
-- Determinism: replica i's draw for its k-th episode comes from the generator seeded by
-  (seed, i, k), so it depends on nothing else (not B, not the other replicas' resets).
+- Seeds: the replicas are the members of a batch (:class:`~physicsrl.envs.members.Members`):
+  replica i draws its episodes from its own generator, seeded with ``member_seed(seed, i)``,
+  so replica i runs the episodes of :class:`~physicsrl.envs.env.PhysicsEnv` seeded with that
+  seed (member i of N simulator groups): the same draws, and the same transitions to the
+  solver's tolerance. Held-out seeds give the same evaluation rows on either backend.
 
 Keys are those of :class:`~physicsrl.envs.env.PhysicsEnv` with a leading batch dimension B.
+Built by :func:`physicsrl.envs.make_env` when ``env.model.backend`` is ``torch``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import asdict
-from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 from mpi4py import MPI
-from tensordict import TensorDict
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
 
-from physicsrl.checks import build, choice, integer, plain
 from physicsrl.envs.atp import SHOCK, ATPConfig, ATPTask, ResetSampler
-from physicsrl.envs.observations import OBSERVATIONS, Observation
+from physicsrl.envs.members import Members
+from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
-from physicsrl.envs.rewards import REWARDS, Reward
+from physicsrl.envs.rewards import Reward
 from physicsrl.envs.snapshots import SnapshotCache
 from physicsrl.fem.batched import BatchedMonodomain
 from physicsrl.fem.integrals import form_rows
 from physicsrl.fem.resolution import report
 
-BACKENDS = ("petsc", "torch")
-"""``env.model.backend``: the coordinated DOLFINx/PETSc simulator, or this module's."""
 
-
-class BatchedATPEnv(EnvBase):
+class BatchedATPEnv(Members):
     """B replicas of the ATP task (see the module docstring).
 
     Parameters
     ----------
     config, observation, reward:
-        As for :class:`~physicsrl.envs.atp.ATPTask` and :class:`~physicsrl.envs.env.PhysicsEnv`.
-    replicas:
-        B.
+        As for :class:`~physicsrl.envs.atp.ATPTask` and :class:`~physicsrl.envs.env.PhysicsEnv`;
+        B is ``config.replicas``, the device ``config.model.device``.
     seed:
-        Seed of every replica's draws (None: from the OS, drawn once).
-    device:
-        Where the simulation runs (``"cpu"`` or ``"cuda"``); the tensordicts are on the CPU.
+        Seed of the batch (replica i: ``member_seed(seed, i)``; None: from the OS).
     max_reset_attempts:
         Draws tried per replica and reset before giving up when states come out non-finite.
     """
+
+    task = ATPTask  # its hooks (baselines, action counts, scores) are class-level
 
     def __init__(
         self,
         config: ATPConfig,
         observation: Observation,
         reward: Reward,
-        replicas: int,
         seed: int | None = None,
-        device: str = "cpu",
         max_reset_attempts: int = 10,
     ):
         missing = reward.events - ATPTask.events
         if missing:
             raise ValueError(f"reward.name {reward.name!r} reads events {sorted(missing)}")
-        B = integer("env.replicas", replicas, 1)
-        if config.induction != "report" or len(set(config.reset.rest_time)) > 1:
-            raise ValueError(
-                f"env.induction={config.induction!r}, env.reset.rest_time="
-                f"{list(config.reset.rest_time)}: the torch backend induces the report's "
-                "arrhythmia with a fixed rest only (induction: report, one rest_time)"
-            )
-        super().__init__(device="cpu", batch_size=[B])
+        if config.model.backend != "torch":
+            raise ValueError(f"env.model.backend must be torch, got {config.model.backend!r}")
+        B = config.replicas
+        super().__init__(B)
         self.config, self.observation, self.reward_fn = config, observation, reward
         self.max_reset_attempts = max_reset_attempts
         domain = config.mesh.create(MPI.COMM_SELF)
-        model = asdict(config.model)
-        warn = model.pop("warn_resolution")
-        self.simulator = sim = BatchedMonodomain(domain, **model, device=device)
-        report(sim.resolution, warn)
+        model = config.model
+        self.simulator = sim = BatchedMonodomain(domain, **model.numerics(), device=model.device)
+        report(sim.resolution, model.warn_resolution)
         V = sim.V
         rows = np.vstack([form_rows(V, [1.0]), observation.rows(V)])  # row 0: integral of u
         self.rows = sim.tensor(rows)
@@ -111,7 +101,7 @@ class BatchedATPEnv(EnvBase):
         self.w = torch.ones_like(self.u)
         self.decisions = np.zeros(B, dtype=np.int64)
         self.intervals = np.zeros(B, dtype=np.int64)
-        self.episodes = np.zeros(B, dtype=np.int64)  # episodes started per replica
+        self.rngs = [np.random.default_rng() for _ in range(B)]
 
         flag = Categorical(2, shape=(B, 1), dtype=torch.bool)
         self.observation_spec = Composite(
@@ -128,15 +118,20 @@ class BatchedATPEnv(EnvBase):
         )
         self._set_seed(seed)
 
-    def _set_seed(self, seed: int | None) -> None:
-        self.seed = int(np.random.SeedSequence(seed).entropy) if seed is None else int(seed)
-        self.episodes[:] = 0
+    # seeds ---------------------------------------------------------------------------------
+    def seed_each(self, seeds: Sequence[int | None], indices: Sequence[int] | None = None):
+        indices = range(self.batch_size[0]) if indices is None else indices
+        for i, seed in zip(indices, seeds, strict=True):
+            self.rngs[i] = np.random.default_rng(seed)
 
-    def draw(self, replica: int, episode: int, attempt: int = 0) -> tuple[float, float, float]:
-        """The reset draw (c, h, b) of ``replica``'s ``episode``-th episode (its
-        ``attempt``-th try if earlier ones diverged)."""
-        rng = np.random.default_rng([self.seed, replica, episode, attempt])
-        return self.sampler(rng)
+    def rng_state(self) -> list[dict]:
+        return [rng.bit_generator.state for rng in self.rngs]
+
+    def set_rng_state(self, states: Sequence[dict]) -> None:
+        if len(states) != len(self.rngs):
+            raise ValueError(f"{len(states)} generator states for {len(self.rngs)} replicas")
+        for rng, state in zip(self.rngs, states, strict=True):
+            rng.bit_generator.state = state
 
     # the simulation ----------------------------------------------------------------------
     def _integrals(self, u: torch.Tensor) -> np.ndarray:
@@ -161,11 +156,12 @@ class BatchedATPEnv(EnvBase):
         return u, w, finite
 
     def _start(self, replicas: list[int]) -> None:
-        """New episodes for ``replicas``: their rows of u and w from the snapshot library or
-        from one batched induction of the draws not in it."""
-        pending = {i: 0 for i in replicas}  # replica -> attempt
+        """New episodes for ``replicas``: each draws from its generator (again if the state
+        comes out non-finite, as :class:`~physicsrl.envs.env.PhysicsEnv` does); rows of u and w
+        from the snapshot library or from one batched induction of the draws not in it."""
+        pending = {i: 0 for i in replicas}  # replica -> attempts so far
         while pending:
-            keys = {i: self.draw(i, int(self.episodes[i]), a) for i, a in pending.items()}
+            keys = {i: self.sampler(self.rngs[i]) for i in pending}
             new = [i for i in pending if keys[i] not in self.snapshots]
             if new:
                 u, w, finite = self._induce([keys[i] for i in new])
@@ -184,123 +180,101 @@ class BatchedATPEnv(EnvBase):
                             f"{self.max_reset_attempts} reset draws in a row gave non-finite "
                             f"states (replica {i})"
                         )
-        for i in replicas:
-            self.episodes[i] += 1
         self.decisions[replicas] = 0
         self.intervals[replicas] = 0
 
-    def _advance(self, index: torch.Tensor | None, shocks: torch.Tensor | None):
-        """One decision interval for the replicas ``index`` (None: all), with the shock on the
-        rows of ``shocks`` (bool, or None: no shock); their finite mask."""
-        u, w = (self.u, self.w) if index is None else (self.u[index], self.w[index])
+    def _advance(self, rows: torch.Tensor | None, shocks: np.ndarray | None) -> np.ndarray:
+        """One decision interval for the replicas ``rows`` (None: all), with the shock on those
+        where ``shocks`` is true (None: none); their finite mask."""
+        u, w = (self.u, self.w) if rows is None else (self.u[rows], self.w[rows])
         config, sim = self.config, self.simulator
         steps = sim.steps(config.decision_interval)
         finite = torch.ones(len(u), dtype=torch.bool, device=u.device)
-        if shocks is not None and bool(shocks.any()):
+        if shocks is not None and shocks.any():
             on = sim.steps(config.shock.duration)
-            current = shocks.to(sim.device, sim.dtype)[:, None] * self.shock
+            current = torch.as_tensor(shocks).to(sim.device, sim.dtype)[:, None] * self.shock
             finite &= sim.advance(u, w, current, on)
             steps -= on
         finite &= sim.advance(u, w, None, steps)
-        if index is not None:
-            self.u[index], self.w[index] = u, w
+        if rows is not None:
+            self.u[rows], self.w[rows] = u, w
         return finite.cpu().numpy()
 
-    # TorchRL -----------------------------------------------------------------------------
-    def _reset(self, tensordict=None, **kwargs) -> TensorDict:
-        B = self.batch_size[0]
-        mask = np.ones(B, dtype=bool)
-        if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict["_reset"].reshape(B).cpu().numpy()
-        self._start([int(i) for i in np.flatnonzero(mask)])
-        false = torch.zeros(B, 1, dtype=torch.bool)
-        return TensorDict(
-            {
-                **self._observation(self._integrals(self.u)[:, 1:], false, false),
-                "done": false.clone(),
-                "terminated": false.clone(),
-                "truncated": false.clone(),
-            },
-            batch_size=[B],
-        )
+    def _rows(self, index: np.ndarray) -> torch.Tensor | None:
+        """``index`` as rows of u and w (None for all replicas in order: no copies)."""
+        if len(index) == len(self.u) and (index == np.arange(len(index))).all():
+            return None
+        return torch.as_tensor(index, device=self.u.device)
 
-    def _observation(self, values, diverged, success) -> dict:
+    # members -------------------------------------------------------------------------------
+    def _values(self, index: np.ndarray, observations, diverged, success) -> dict[str, np.ndarray]:
+        """Per-key arrays (leading dimension len(index)) of the replicas ``index``."""
+        column = lambda flags: np.asarray(flags, dtype=bool).reshape(-1, 1)  # noqa: E731
         return {
-            "observation": torch.as_tensor(values, dtype=torch.float32),
-            "step": torch.as_tensor(self.decisions, dtype=torch.int64)[:, None].clone(),
-            "diverged": torch.as_tensor(diverged).reshape(-1, 1).clone(),
-            "success": torch.as_tensor(success).reshape(-1, 1).clone(),
+            "observation": np.asarray(observations, dtype=np.float32),
+            "step": self.decisions[index][:, None].copy(),
+            "diverged": column(diverged),
+            "success": column(success),
         }
 
-    def _step(self, tensordict: TensorDict) -> TensorDict:
+    @staticmethod
+    def _split(index: np.ndarray, values: dict[str, np.ndarray]) -> dict[int, dict]:
+        return {int(i): {k: v[j] for k, v in values.items()} for j, i in enumerate(index)}
+
+    def reset_some(self, indices: Sequence[int]) -> dict[int, dict]:
+        index = np.asarray(indices, dtype=np.int64)
+        self._start(index.tolist())
+        rows = self._rows(index)
+        observations = self._integrals(self.u if rows is None else self.u[rows])[:, 1:]
+        false = np.zeros(len(index), dtype=bool)
+        values = self._values(index, observations, false, false)
+        values |= {"done": values["diverged"].copy(), "terminated": values["diverged"].copy()}
+        values["truncated"] = values["diverged"].copy()
+        return self._split(index, values)
+
+    def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
+        """One decision of the replicas ``actions.keys()``; those that reach ``max_decisions``
+        without success run up to ``extra_waits`` further intervals in a sub-batch."""
         config = self.config
-        action = tensordict["action"].reshape(-1).cpu()
-        shock = (action == SHOCK).numpy()
-        self.decisions += 1
-        self.intervals += 1
-        finite = self._advance(None, torch.as_tensor(shock))
-        values = self._integrals(self.u)
+        index = np.fromiter(actions, dtype=np.int64, count=len(actions))
+        shock = np.fromiter(actions.values(), dtype=np.int64, count=len(actions)) == SHOCK
+        self.decisions[index] += 1
+        self.intervals[index] += 1
+        rows = self._rows(index)
+        finite = self._advance(rows, shock)
+        values = self._integrals(self.u if rows is None else self.u[rows])
         success = finite & (values[:, 0] < config.success_threshold)
-        waiting = np.flatnonzero(finite & ~success & (self.decisions >= config.max_decisions))
+        last = self.decisions[index] >= config.max_decisions
+        waiting = np.flatnonzero(finite & ~success & last)
         for _ in range(config.extra_waits):
             if not len(waiting):
                 break
-            index = torch.as_tensor(waiting, device=self.u.device)
-            finite[waiting] &= self._advance(index, None)
-            self.intervals[waiting] += 1
-            values[waiting] = self._integrals(self.u[index])
+            waiting_rows = torch.as_tensor(index[waiting], device=self.u.device)
+            finite[waiting] &= self._advance(waiting_rows, None)
+            self.intervals[index[waiting]] += 1
+            values[waiting] = self._integrals(self.u[waiting_rows])
             success[waiting] = finite[waiting] & (values[waiting, 0] < config.success_threshold)
             waiting = waiting[finite[waiting] & ~success[waiting]]
         diverged = ~finite
-        failure = finite & ~success & (self.decisions >= config.max_decisions)
+        failure = finite & ~success & last
         values[diverged] = 0.0
         rewards = [
             self.reward_fn(
                 {
-                    "shock": bool(shock[i]),
-                    "success": bool(success[i]),
-                    "failure": bool(failure[i]),
+                    "shock": bool(shock[j]),
+                    "success": bool(success[j]),
+                    "failure": bool(failure[j]),
                     "steps": int(self.intervals[i]),
                 }
             )
-            for i in range(len(shock))
+            for j, i in enumerate(index)
         ]
-        terminated = torch.as_tensor(success | failure)[:, None]
-        truncated = torch.as_tensor(diverged)[:, None]
-        return TensorDict(
-            {
-                **self._observation(values[:, 1:], diverged, success),
-                "reward": torch.tensor(rewards, dtype=torch.float32)[:, None],
-                "done": terminated | truncated,
-                "terminated": terminated,
-                "truncated": truncated,
-            },
-            batch_size=self.batch_size,
-        )
-
-
-def make_batched_env(cfg: Mapping | Any) -> BatchedATPEnv:
-    """The batched environment of a ``make_env`` config (:mod:`physicsrl.envs.factory`) whose
-    ``env`` is the ATP task with ``env.model.backend=torch``, ``env.model.device`` (cpu or
-    cuda; default cpu) and ``env.replicas`` (B, default 1)."""
-    cfg = plain(cfg)
-    env = dict(cfg["env"])
-    model = dict(env.get("model", {}))
-    backend = choice("env.model.backend", model.pop("backend", "torch"), BACKENDS)
-    if backend != "torch":
-        raise ValueError(f"env.model.backend must be torch for the batched env, got {backend!r}")
-    device = choice("env.model.device", model.pop("device", "cpu"), ("cpu", "cuda"))
-    replicas = env.pop("replicas", 1)
-    env["model"] = model
-    if env.pop("name", "atp") != "atp":
-        raise ValueError("env.name must be atp for env.model.backend=torch")
-    observation_class, settings = OBSERVATIONS.lookup(cfg["observation"])
-    reward_class, reward_settings = REWARDS.lookup(cfg["reward"])
-    return BatchedATPEnv(
-        build(ATPConfig, env, "env"),
-        build(observation_class, settings, "observation"),
-        build(reward_class, reward_settings, "reward"),
-        replicas,
-        seed=cfg.get("seed"),
-        device=device,
-    )
+        terminated = (success | failure).reshape(-1, 1)
+        result = self._values(index, values[:, 1:], diverged, success)
+        result |= {
+            "reward": np.asarray(rewards, dtype=np.float32).reshape(-1, 1),
+            "done": terminated | diverged.reshape(-1, 1),
+            "terminated": terminated,
+            "truncated": diverged.reshape(-1, 1).copy(),
+        }
+        return self._split(index, result)

@@ -14,8 +14,8 @@ environments that the ``"_reset"`` mask names, so TorchRL's ``Collector`` and
 ``step_and_maybe_reset`` work unchanged. The other group leaders serve those requests
 (:func:`serve`); the other ranks serve their group leader's parallel calls.
 
-Seeds: environment i is seeded with ``seed + i * 2**40`` (:func:`member_seed`), so its
-episodes depend only on (seed, i, its episode count), never on P or W; environment 0 is
+Seeds: environment i is seeded with :func:`~physicsrl.envs.members.member_seed` ``(seed, i)``,
+so its episodes depend only on (seed, i, its episode count), never on P or W; environment 0 is
 seeded with ``seed`` itself, so N = 1 is the plain environment.
 
 Use it through :func:`environments`, on every rank::
@@ -37,26 +37,20 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from mpi4py import MPI
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl import timeit
 from torchrl.envs import EnvBase
 
 from physicsrl.coordinated import Coordinator, wait_for
+from physicsrl.envs.members import Members, numpy_leaves
 from physicsrl.launch import check_layout
 
-__all__ = ["GroupedEnv", "Layout", "environments", "member_seed", "serve", "spread_episodes"]
+__all__ = ["GroupedEnv", "Layout", "environments", "serve"]
 
-SEED_STRIDE = 1 << 40
 _REQUEST, _REPLY = 31, 32
 _SEED, _RESET, _STEP, _GET_RNG, _SET_RNG, _CLOSE = range(6)
-
-
-def member_seed(seed: int | None, index: int) -> int | None:
-    """The seed of environment ``index`` of a batch seeded with ``seed``."""
-    return None if seed is None else int(seed) + index * SEED_STRIDE
 
 
 @dataclass(frozen=True)
@@ -83,15 +77,6 @@ class Layout:
         is_leader = comm.rank == 0
         leaders = world.Split(0 if is_leader else MPI.UNDEFINED, world.rank)
         return cls(world, ranks_per_env, world.size // ranks_per_env, group, comm, leaders)
-
-
-def _numpy(td: TensorDictBase) -> dict:
-    """The leaves of an unbatched tensordict as numpy arrays (cheap to pickle)."""
-    return {key: value.numpy() for key, value in td.items(True, True)}
-
-
-def _tensordict(leaves: dict) -> TensorDict:
-    return TensorDict({key: torch.from_numpy(value) for key, value in leaves.items()}, [])
 
 
 class _Member:
@@ -122,12 +107,12 @@ def _run(member: _Member, command: int, argument):
         return None
     if command == _RESET:
         member.state = env.reset()
-        return _numpy(member.state)
+        return numpy_leaves(member.state)
     if command == _STEP:
         member.state["action"] = torch.as_tensor(argument)
         step = env.step(member.state)
         member.state = step["next"]
-        return _numpy(member.state)
+        return numpy_leaves(member.state)
     if command == _GET_RNG:
         return env.rng.bit_generator.state
     if command == _SET_RNG:
@@ -153,20 +138,18 @@ def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: fl
         leaders.send(_run(member, command, argument), dest=0, tag=_REPLY)
 
 
-class GroupedEnv(EnvBase):
+class GroupedEnv(Members):
     """The N environments of a :class:`Layout` as one TorchRL env of ``batch_size=[N]``
-    (world rank 0 only; see the module docstring).
+    (world rank 0 only; see the module docstring and :class:`~physicsrl.envs.members.Members`).
 
     Keys and specs are those of the member environments with a leading dimension N.
-    ``rng`` is not a single generator: checkpoints use :meth:`rng_state` /
-    :meth:`set_rng_state` (one state per member).
     """
 
     def __init__(self, env: EnvBase, layout: Layout, seed: int | None = None):
         if layout.world.rank != 0:
             raise ValueError("GroupedEnv lives on world rank 0 (the learner)")
         n = layout.n_envs
-        super().__init__(device=env.device, batch_size=[n])
+        super().__init__(n, device=env.device)
         self.layout = layout
         self.members = [_Member(0, env, None)] + [
             _Member(i, None, layout.leaders) for i in range(1, n)
@@ -176,7 +159,6 @@ class GroupedEnv(EnvBase):
         self.action_spec = env.action_spec.expand(shape + env.action_spec.shape)
         self.reward_spec = env.reward_spec.expand(shape + env.reward_spec.shape)
         self.done_spec = env.done_spec.expand(shape + env.done_spec.shape)
-        self._last: list[dict | None] = [None] * n
         self._set_seed(seed)
 
     @property
@@ -209,17 +191,11 @@ class GroupedEnv(EnvBase):
                 results[k] = member.result(command)
         return results
 
-    # seeds and random state -------------------------------------------------------------------
-    def _set_seed(self, seed: int | None) -> None:
-        self.seed_each([member_seed(seed, i) for i in range(self.batch_size[0])])
-
     def seed_each(self, seeds: Sequence[int | None], indices: Sequence[int] | None = None):
-        """Seed member ``indices[k]`` (default: all) with ``seeds[k]``."""
         indices = range(self.batch_size[0]) if indices is None else indices
         self._all(_SEED, list(seeds), list(indices))
 
     def rng_state(self) -> list[dict]:
-        """The episode generators' states, one per member."""
         n = self.batch_size[0]
         return self._all(_GET_RNG, [None] * n, range(n))
 
@@ -229,75 +205,17 @@ class GroupedEnv(EnvBase):
             raise ValueError(f"{len(states)} generator states for {n} environments")
         self._all(_SET_RNG, list(states), range(n))
 
-    # reset and step -----------------------------------------------------------------------
     def reset_some(self, indices: Sequence[int]) -> dict[int, dict]:
-        """Reset members ``indices``; their first values (key -> numpy array, unbatched)."""
-        results = self._all(_RESET, [None] * len(indices), indices)
-        for i, leaves in zip(indices, results, strict=True):
-            self._last[i] = leaves
-        return dict(zip(indices, results, strict=True))
+        return dict(zip(indices, self._all(_RESET, [None] * len(indices), indices), strict=True))
 
     def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
-        """Step members ``actions.keys()`` with their actions; their next values."""
         indices = list(actions)
         return dict(zip(indices, self._all(_STEP, list(actions.values()), indices), strict=True))
-
-    def _batch(self, rows: dict[int, dict]) -> TensorDict:
-        """Stack per-member values into one tensordict of batch size [N]; absent members get
-        their last reset values (TorchRL's partial-reset update masks them out)."""
-        filled = [rows.get(i, self._last[i]) for i in range(self.batch_size[0])]
-        keys = next(iter(rows.values())).keys()
-        return TensorDict(
-            {key: torch.from_numpy(np.stack([row[key] for row in filled])) for key in keys},
-            self.batch_size,
-        )
-
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
-        n = self.batch_size[0]
-        mask = None if tensordict is None else tensordict.get("_reset", None)
-        indices = range(n) if mask is None else mask.reshape(n).nonzero().flatten().tolist()
-        return self._batch(self.reset_some(list(indices)))
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDict:
-        actions = tensordict["action"].reshape(self.batch_size[0]).tolist()
-        return self._batch(self.step_some(dict(enumerate(actions))))
 
     def close_groups(self, status: int = 0) -> None:
         """Release the other group leaders (their serve loops return ``status``)."""
         for member in self.members[1:]:
             member.send(_CLOSE, status)
-
-
-def spread_episodes(
-    env: GroupedEnv, policy: Callable, seeds: Sequence[int], max_steps: int
-) -> list[TensorDict]:
-    """One episode per seed, spread over the members (K seeds take about K / N episode
-    times): member i runs seeds i, i + N, ...; each episode is the unbatched rollout its
-    member would produce alone (a stack of steps with ``"next"``), in the order of ``seeds``."""
-    n = env.batch_size[0]
-    episodes: list[TensorDict | None] = [None] * len(seeds)
-    for start in range(0, len(seeds), n):
-        chunk = list(seeds[start : start + n])
-        members = list(range(len(chunk)))
-        env.seed_each(chunk, members)
-        current = {i: _tensordict(v) for i, v in env.reset_some(members).items()}
-        steps: dict[int, list[TensorDict]] = {i: [] for i in members}
-        for _ in range(max_steps):
-            if not current:
-                break
-            actions = {i: int(policy(td.clone())["action"]) for i, td in current.items()}
-            following = {i: _tensordict(v) for i, v in env.step_some(actions).items()}
-            for i, td in following.items():
-                step = current[i].clone()
-                step["action"] = torch.as_tensor(actions[i])
-                step["next"] = td
-                steps[i].append(step)
-            current = {
-                i: td.exclude("reward") for i, td in following.items() if not bool(td["done"])
-            }
-        for i in members:
-            episodes[start + i] = torch.stack(steps[i])
-    return episodes
 
 
 @contextmanager

@@ -103,7 +103,7 @@ class BatchedMonodomain:
         A DOLFINx mesh on ``MPI.COMM_SELF``.
     tau_in, tau_out, tau_open, tau_close, u_gate, D, dt:
         As :class:`~physicsrl.fem.MonodomainMitchellSchaeffer` (the report's values:
-        ``dataclasses.asdict(physicsrl.envs.atp.MSModel())``).
+        ``physicsrl.envs.atp.MSModel().numerics()``).
     scheme, substeps:
         ``"implicit"`` or ``"explicit"`` with ``substeps`` sub-steps per dt (explicit only).
     device, dtype:

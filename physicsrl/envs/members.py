@@ -1,0 +1,138 @@
+"""Independent environments as the members of one TorchRL env of ``batch_size=[N]``.
+
+Two envs are such batches: :class:`~physicsrl.envs.groups.GroupedEnv` (N simulator groups of
+MPI ranks) and :class:`~physicsrl.envs.batched.BatchedATPEnv` (N replicas on one device). A
+batch seeded with ``seed`` seeds member i with :func:`member_seed` ``(seed, i)``, and each member
+draws its episodes from its own generator, so member i's episodes depend only on (seed, i, its
+episode count): not on N, and not on how the batch is built. Member i of N groups and replica i
+of N replicas run the same episodes, and member 0 of a batch seeded with ``seed`` runs those of
+the plain env seeded with ``seed``.
+
+Members are seeded, reset and stepped alone or together (:meth:`Members.seed_each`,
+:meth:`~Members.reset_some`, :meth:`~Members.step_some`, values as numpy arrays per member);
+TorchRL's ``reset`` (with its ``"_reset"`` mask) and ``step`` go through them, so the
+``Collector`` and ``step_and_maybe_reset`` work unchanged. :func:`spread_episodes` runs
+evaluation episodes, one seed per member at a time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+
+__all__ = ["Members", "member_seed", "spread_episodes"]
+
+SEED_STRIDE = 1 << 40
+
+
+def member_seed(seed: int | None, index: int) -> int | None:
+    """The seed of member ``index`` of a batch seeded with ``seed``."""
+    return None if seed is None else int(seed) + index * SEED_STRIDE
+
+
+class Members(EnvBase):
+    """Base class of a batch of independent environments (see the module docstring).
+
+    Subclasses set the specs (a leading dimension N) and implement :meth:`seed_each`,
+    :meth:`reset_some`, :meth:`step_some`, :meth:`rng_state` and :meth:`set_rng_state`, and
+    name their task (:attr:`task`: its hooks give the baselines, action counts and scores).
+    """
+
+    def __init__(self, n: int, device="cpu"):
+        super().__init__(device=device, batch_size=[n])
+        self._last: list[dict | None] = [None] * n  # each member's latest values
+
+    @property
+    def task(self):
+        """The task behind the members (a :class:`~physicsrl.envs.task.Task` or its class)."""
+        raise NotImplementedError
+
+    def seed_each(self, seeds: Sequence[int | None], indices: Sequence[int] | None = None):
+        """Seed member ``indices[k]`` (default: all) with ``seeds[k]``."""
+        raise NotImplementedError
+
+    def reset_some(self, indices: Sequence[int]) -> dict[int, dict]:
+        """Start a new episode on members ``indices``; their first values (key -> numpy array,
+        shaped as one member's)."""
+        raise NotImplementedError
+
+    def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
+        """Step members ``actions.keys()`` with their actions; their next values (with
+        ``reward`` and the done flags)."""
+        raise NotImplementedError
+
+    def rng_state(self) -> list[dict]:
+        """The episode generators' states, one per member (checkpoints save them)."""
+        raise NotImplementedError
+
+    def set_rng_state(self, states: Sequence[dict]) -> None:
+        raise NotImplementedError
+
+    # TorchRL ------------------------------------------------------------------------------
+    def _set_seed(self, seed: int | None) -> None:
+        self.seed_each([member_seed(seed, i) for i in range(self.batch_size[0])])
+
+    def _batch(self, rows: dict[int, dict]) -> TensorDict:
+        """Stack per-member values into one tensordict of batch size [N]; members absent from
+        ``rows`` get their latest values (TorchRL's partial-reset update masks them out)."""
+        self._last = [rows.get(i, last) for i, last in enumerate(self._last)]
+        keys = next(iter(rows.values())).keys()
+        return TensorDict(
+            {key: torch.from_numpy(np.stack([row[key] for row in self._last])) for key in keys},
+            self.batch_size,
+        )
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+        n = self.batch_size[0]
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        indices = range(n) if mask is None else mask.reshape(n).nonzero().flatten().tolist()
+        return self._batch(self.reset_some(list(indices)))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        actions = tensordict["action"].reshape(self.batch_size[0]).tolist()
+        return self._batch(self.step_some(dict(enumerate(actions))))
+
+
+def numpy_leaves(td: TensorDictBase) -> dict:
+    """The leaves of an unbatched tensordict as numpy arrays (cheap to pickle)."""
+    return {key: value.numpy() for key, value in td.items(True, True)}
+
+
+def _tensordict(leaves: dict) -> TensorDict:
+    return TensorDict({key: torch.from_numpy(value) for key, value in leaves.items()}, [])
+
+
+def spread_episodes(
+    env: Members, policy: Callable, seeds: Sequence[int], max_steps: int
+) -> list[TensorDict]:
+    """One episode per seed, spread over the members (K seeds take about K / N episode
+    times): member i runs seeds i, i + N, ...; each episode is the unbatched rollout its
+    member would produce alone (a stack of steps with ``"next"``), in the order of ``seeds``."""
+    n = env.batch_size[0]
+    episodes: list[TensorDict | None] = [None] * len(seeds)
+    for start in range(0, len(seeds), n):
+        chunk = list(seeds[start : start + n])
+        members = list(range(len(chunk)))
+        env.seed_each(chunk, members)
+        current = {i: _tensordict(v) for i, v in env.reset_some(members).items()}
+        steps: dict[int, list[TensorDict]] = {i: [] for i in members}
+        for _ in range(max_steps):
+            if not current:
+                break
+            actions = {i: int(policy(td.clone())["action"]) for i, td in current.items()}
+            following = {i: _tensordict(v) for i, v in env.step_some(actions).items()}
+            for i, td in following.items():
+                step = current[i].clone()
+                step["action"] = torch.as_tensor(actions[i])
+                step["next"] = td
+                steps[i].append(step)
+            current = {
+                i: td.exclude("reward") for i, td in following.items() if not bool(td["done"])
+            }
+        for i in members:
+            episodes[start + i] = torch.stack(steps[i])
+    return episodes
