@@ -148,7 +148,10 @@ class Dojo:
         Run directory: TensorBoard events (``tensorboard/``), ``eval.csv`` and checkpoints
         (``checkpoints/``). ``None``: no files.
     tensorboard:
-        Write TensorBoard events into ``log_dir``.
+        Write TensorBoard events into ``log_dir``: training scalars by iteration, and each
+        evaluation metric against iterations (``eval/``), environment steps
+        (``eval_by_env_steps/``), training wall-clock seconds (``eval_by_wall_s/``) and
+        core-seconds (``eval_by_core_s/``: wall seconds x ``cores``).
     checkpoint_every, keep_checkpoints:
         Checkpoint every so many iterations (0: only at the end or on a stop request).
     checkpoint_extra:
@@ -160,6 +163,8 @@ class Dojo:
         Show a tqdm progress bar (with ETA).
     action_counts:
         ``{"shocks": 1}``: evaluation also reports how often action 1 was taken.
+    cores:
+        The cores (MPI ranks) the job uses, for the core-seconds axis.
     """
 
     def __init__(
@@ -190,6 +195,7 @@ class Dojo:
         coordinator: Any = None,
         progress: bool = True,
         action_counts: Mapping[str, int] | None = None,
+        cores: int = 1,
     ):
         self.q_network = q_network
         self.env = env
@@ -216,6 +222,7 @@ class Dojo:
         self.checkpoint_extra = dict(checkpoint_extra or {})
         self.progress = progress
         self.action_counts = dict(action_counts or {})
+        self.cores = cores
         self.counters = Counters()
         self.history: list[dict] = []  # one row per evaluation
         self.checkpoints = (
@@ -518,11 +525,17 @@ class Dojo:
         text = " ".join(f"{k} {v:.4g}" for k, v in row.items() if k not in counters)
         log.info("eval at iteration %d (%d frames): %s", row["iteration"], row["frames"], text)
         if self.writer is not None:
+            axes = {
+                "eval": row["iteration"],
+                "eval_by_env_steps": row["frames"],
+                "eval_by_wall_s": round(row["wall_s"]),
+                "eval_by_core_s": round(row["wall_s"] * self.cores),
+            }
             for key, value in row.items():
                 if key not in counters:
                     name = "success_rate" if key == "success" else key
-                    self.writer.add_scalar(f"eval/{name}", value, row["iteration"])
-                    self.writer.add_scalar(f"eval_by_env_steps/{name}", value, row["frames"])
+                    for axis, step in axes.items():
+                        self.writer.add_scalar(f"{axis}/{name}", value, step)
         if self.log_dir is not None:
             write_csv(self.log_dir / "eval.csv", self.history)
 

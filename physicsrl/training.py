@@ -126,6 +126,7 @@ def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None =
         coordinator=coordinator,
         progress=config.logger.progress,
         action_counts=task.action_counts if task else {},
+        cores=MPI.COMM_WORLD.size,
     )
 
 

@@ -9,6 +9,7 @@ take seconds; the heat task is trained by ``physicsrl-train`` itself (see docs).
 
 from __future__ import annotations
 
+import csv
 import os
 import signal
 import subprocess
@@ -270,6 +271,16 @@ def test_mpi_run_writes_checkpoints_events_and_log_only_in_the_leader_run_dir(re
         "time/learner_s",
     ):
         assert tag in tags, tag
+    # the learning curve's cost axes: env steps, wall seconds, core-seconds (2 ranks)
+    with open(run_dir / "eval.csv") as stream:
+        rows = list(csv.DictReader(stream))
+    axes = {
+        "eval_by_env_steps": [int(r["frames"]) for r in rows],
+        "eval_by_wall_s": [round(float(r["wall_s"])) for r in rows],
+        "eval_by_core_s": [round(float(r["wall_s"]) * 2) for r in rows],
+    }
+    for axis, steps in axes.items():
+        assert [e.step for e in events.Scalars(f"{axis}/return")] == steps, axis
     state = final_state(run_dir)
     assert state["counters"]["iteration"] == ITERATIONS
 
