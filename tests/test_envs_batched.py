@@ -24,6 +24,7 @@ from physicsrl.coordinated import Coordinator
 from physicsrl.envs import load_config, make_env
 from physicsrl.envs.batched import BatchedATPEnv
 from physicsrl.envs.members import member_seed
+from tests.conftest import MPIEXEC
 
 # A small, short ATP task: 16 x 16 cells, induction 9 time units, decisions of 3.
 SMALL = (
@@ -138,7 +139,8 @@ def test_bad_settings_are_named(overrides, message):
 
 def test_training_on_replicas_and_its_evaluation_match_the_petsc_path(tmp_path):
     """``physicsrl-train env=ms env.model.backend=torch env.replicas=3`` trains (3
-    environments, checkpoints), and ``physicsrl-eval`` of that run gives the same rows for the
+    environments, checkpoints), ``physicsrl-eval`` of it on 2 ranks is one line (replicas run on
+    one rank), and ``physicsrl-eval`` of that run gives the same rows for the
     agent and every baseline on the torch backend and, with the run's config overridden back to
     the PETSc backend, on the DOLFINx path: returns to 1e-4, equal success and shocks. (Not the
     random baseline: its one generator serves the seeds in another order when they are spread
@@ -184,6 +186,9 @@ def test_training_on_replicas_and_its_evaluation_match_the_petsc_path(tmp_path):
         assert result.returncode == 0, result.stdout + result.stderr
         with open(tmp_path / backend / "eval.csv") as stream:
             rows[backend] = list(csv.DictReader(stream))
+    on_two = [str(MPIEXEC), "-n", "2", str(bin_dir / "physicsrl-eval"), f"run={tmp_path / 'run'}"]
+    result = subprocess.run(on_two, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and result.stderr.count("on one MPI rank, got 2 ranks") == 1
     assert len(rows["torch"]) == len(rows["petsc"]) > 3  # the agent and the baselines
     assert {row["success"] for row in rows["petsc"]} == {"0.0", "1.0"}
     for ours, theirs in zip(rows["torch"], rows["petsc"], strict=True):

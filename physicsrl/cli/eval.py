@@ -72,6 +72,7 @@ def main() -> None:
 def evaluate(cfg) -> None:
     """Every rank: rebuild the run's env from its stored config; the leader evaluates."""
     from mpi4py import MPI
+    from omegaconf import OmegaConf
 
     from physicsrl import builders
     from physicsrl.checkpoint import checkpoint_file, read
@@ -79,6 +80,7 @@ def evaluate(cfg) -> None:
     from physicsrl.cli.train import check_run
     from physicsrl.config import typed
     from physicsrl.envs.groups import environments
+    from physicsrl.launch import check_backend
 
     comm = MPI.COMM_WORLD
     leader = comm.rank == 0
@@ -87,6 +89,7 @@ def evaluate(cfg) -> None:
     config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
     try:  # as physicsrl-train checks its config, before anything is built
         train_cfg = run_config(config, list(cfg.overrides))
+        check_backend(OmegaConf.select(train_cfg, "env.model.backend"), comm.size)
         check_run(train_cfg)
     except ValueError as error:
         refuse_config(error)
