@@ -30,8 +30,7 @@ def with_pairs(overrides: list[str]) -> list[str]:
     if "env" not in chosen:
         return overrides
     from physicsrl.envs import TASKS
-    from physicsrl.envs.factory import shipped
-    from physicsrl.envs.registry import import_module_of
+    from physicsrl.envs.registry import import_module_of, shipped
 
     searched = [  # a user's configs first (hydra.searchpath=[file://DIR,...])
         Path(d.removeprefix("file://")) / "env" / f"{chosen['env']}.yaml"

@@ -52,7 +52,6 @@ import numpy as np
 
 from physicsrl.checks import choice, integer, interval, number, positive, vector
 from physicsrl.coordinated import Coordinator, parallel
-from physicsrl.envs.baselines import atp_baselines
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
 from physicsrl.envs.snapshots import SnapshotCache
@@ -282,6 +281,8 @@ class ATPTask(Task):
 
     @staticmethod  # the replicas of the torch backend use the class's hooks
     def baselines(env, seeds, seed):
+        from physicsrl.envs.baselines import atp_baselines  # torch: imported on use
+
         return atp_baselines(env, seeds, seed)
 
     def __init__(self, coordinator: Coordinator, config: ATPConfig, observation: Observation):

@@ -27,6 +27,7 @@ from physicsrl.checks import build, plain
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs.env import PhysicsEnv
 from physicsrl.envs.observations import OBSERVATIONS
+from physicsrl.envs.registry import shipped
 from physicsrl.envs.rewards import REWARDS
 from physicsrl.envs.task import TASKS
 from physicsrl.launch import check_backend
@@ -73,20 +74,3 @@ def load_config(
     cfg = OmegaConf.create({g: OmegaConf.load(shipped(g, n)) for g, n in groups.items()})
     cfg.seed = seed
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
-
-
-def shipped(group: str, option: str) -> str:
-    """The path of the shipped YAML ``conf/<group>/<option>.yaml``: in the package
-    ``physicsrl.conf`` when installed, the repository's ``conf/`` in a checkout (where a stray
-    ``physicsrl/conf`` folder may shadow the editable mapping); FileNotFoundError if absent."""
-    from importlib.resources import files
-    from pathlib import Path
-
-    candidates = [files("physicsrl.conf"), Path(__file__).resolve().parents[2] / "conf"]
-    for root in candidates:
-        if (root / "env" / "heat.yaml").is_file():
-            path = root / group / f"{option}.yaml"
-            if not path.is_file():
-                raise FileNotFoundError(f"no config {group}/{option}.yaml in {root}")
-            return str(path)
-    raise FileNotFoundError("the physicsrl configs (conf/env/heat.yaml) are not installed")

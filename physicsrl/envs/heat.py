@@ -20,7 +20,6 @@ import numpy as np
 
 from physicsrl.checks import integer, interval, number, positive
 from physicsrl.coordinated import Coordinator, parallel
-from physicsrl.envs.baselines import Constant, HeatOptimal
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
 from physicsrl.fem import HeatEnvironment, SimulationDiverged
@@ -76,6 +75,8 @@ class HeatTask(Task):
 
     def baselines(self, env, seeds, seed):
         """Stop at once, never stop, and the exact optimum (:func:`exact_optimum`)."""
+        from physicsrl.envs.baselines import Constant, HeatOptimal  # torch: imported on use
+
         return {
             "stop at once": Constant(0),
             "never stop": Constant(1),

@@ -60,3 +60,20 @@ def import_module_of(group: str, settings: Mapping) -> None:
         import_source(str(module))
     except (ImportError, OSError) as error:
         raise ValueError(f"{group}.module {module!r} cannot be imported: {error}") from error
+
+
+def shipped(group: str, option: str) -> str:
+    """The path of the shipped YAML ``conf/<group>/<option>.yaml``: in the package
+    ``physicsrl.conf`` when installed, the repository's ``conf/`` in a checkout (where a stray
+    ``physicsrl/conf`` folder may shadow the editable mapping); FileNotFoundError if absent."""
+    from importlib.resources import files
+    from pathlib import Path
+
+    candidates = [files("physicsrl.conf"), Path(__file__).resolve().parents[2] / "conf"]
+    for root in candidates:
+        if (root / "env" / "heat.yaml").is_file():
+            path = root / group / f"{option}.yaml"
+            if not path.is_file():
+                raise FileNotFoundError(f"no config {group}/{option}.yaml in {root}")
+            return str(path)
+    raise FileNotFoundError("the physicsrl configs (conf/env/heat.yaml) are not installed")
