@@ -150,11 +150,11 @@ def check_layout(ranks_per_env: int, world_size: int) -> None:
         )
 
 
-def check_backend(backend: str | None, world_size: int) -> None:
-    """ValueError in one line if ``env.model.backend`` is ``torch`` on more than one rank: its
-    replicas (``env.replicas``) run on one rank; spreading them over groups is not built."""
-    if backend == "torch" and world_size > 1:
+def check_backend(backend: str | None, ranks_per_env: int) -> None:
+    """ValueError in one line if ``env.model.backend`` is ``torch`` with groups of more than
+    one rank: each group's replicas (``env.replicas``) run on one rank."""
+    if backend == "torch" and ranks_per_env != 1:
         raise ValueError(
-            f"env.model.backend=torch runs its env.replicas on one MPI rank, got {world_size} "
-            "ranks (spreading replicas over groups of ranks is not built)"
+            f"mpi.ranks_per_env={ranks_per_env}: env.model.backend=torch runs each group's "
+            "env.replicas on one rank (mpi.ranks_per_env=1)"
         )

@@ -203,7 +203,11 @@ PROCESSES = [
     (1, ["physicsrl-train", "agent.network.hidden=[1000000000]"], "would need about 140 GB"),
     (2, ["physicsrl-train", "-m", "iterations=-5,3"], "(sweep job 1 of 2: iterations=-5)"),
     (2, ["physicsrl-train", "observation=catheter"], "catheter does not fit the heat task"),
-    (2, ["physicsrl-train", "env=ms", "env.model.backend=torch"], "on one MPI rank, got 2 ranks"),
+    (
+        2,
+        ["physicsrl-train", "env=ms", "env.model.backend=torch", "mpi.ranks_per_env=2"],
+        "mpi.ranks_per_env=2: env.model.backend=torch runs each group's env.replicas on one rank",
+    ),
     (2, ["physicsrl-eval", f"run={RUN}", 'overrides=["nosuch=1"]'], "unknown key 'nosuch'"),
 ]
 

@@ -137,23 +137,40 @@ def test_bad_settings_are_named(overrides, message):
         make_env(cfg, Coordinator())
 
 
-def test_training_on_replicas_and_its_evaluation_match_the_petsc_path(tmp_path):
-    """``physicsrl-train env=ms env.model.backend=torch env.replicas=3`` trains (3
-    environments, checkpoints), ``physicsrl-eval`` of it on 2 ranks is one line (replicas run on
-    one rank), and ``physicsrl-eval`` of that run gives the same rows for the
-    agent and every baseline on the torch backend and, with the run's config overridden back to
-    the PETSc backend, on the DOLFINx path: returns to 1e-4, equal success and shocks. (Not the
-    random baseline: its one generator serves the seeds in another order when they are spread
-    over replicas.)"""
-    bin_dir = Path(sys.executable).parent
+def run(arguments: list[str], cwd: Path, ranks: int = 1) -> subprocess.CompletedProcess:
+    launch = [str(MPIEXEC), "-n", str(ranks)] if ranks > 1 else []
+    command = [*launch, str(Path(sys.executable).parent / arguments[0]), *arguments[1:]]
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+def table(path: Path) -> list[dict]:
+    with open(path) as stream:
+        return list(csv.DictReader(stream))
+
+
+def assert_same_rows(ours: list[dict], theirs: list[dict], keys: tuple[str, ...]) -> None:
+    """Returns to 1e-4, ``keys`` equal (not the random baseline: its one generator serves the
+    seeds in another order when they are spread over other members)."""
+    assert len(ours) == len(theirs) > 0
+    for a, b in zip(ours, theirs, strict=True):
+        if a.get("policy", "").startswith("random"):
+            continue
+        assert float(a["return"]) == pytest.approx(float(b["return"]), abs=1e-4), (a, b)
+        assert [a[k] for k in keys] == [b[k] for k in keys], (a, b)
+
+
+def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
+    """``physicsrl-train env=ms env.model.backend=torch env.replicas=4`` on one rank, and with
+    2 replicas on each of 2 ranks (2 groups x 2 = the same 4 environments): the same
+    in-training evaluations. ``physicsrl-eval`` of the 1-rank run gives the same rows for the
+    agent and the baselines on the torch backend, on the PETSc path (the run's config
+    overridden back to it) and on 2 ranks of 2 replicas; groups of 2 ranks are one line."""
     # success when the integral of u drops below 230: after 2 waits on some draws (196 against
     # 251 and 278 on the first three held-out draws), later or never on the others
     task = ["env=ms", *SMALL, "env.success_threshold=230.0", "env.model.scheme=explicit"]
-    train = [
-        str(bin_dir / "physicsrl-train"),
+    settings = [
         *task,
         "env.model.backend=torch",
-        "env.replicas=3",
         "iterations=4",
         "collector.frames_per_env=2",
         "optim.learning_starts=6",
@@ -161,40 +178,46 @@ def test_training_on_replicas_and_its_evaluation_match_the_petsc_path(tmp_path):
         "eval.seeds=[1000000000,1000000001]",
         "checkpoint.every=2",
         "logger.progress=false",
-        f"hydra.run.dir={tmp_path / 'run'}",
     ]
-    result = subprocess.run(train, cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stdout + result.stderr
-    summary = json.loads((tmp_path / "run" / "summary.json").read_text())["summary"]
-    assert summary["environments"] == 3 and summary["frames"] == 4 * 2 * 3
+    runs = {}
+    for name, ranks, replicas in (("one_rank", 1, 4), ("two_ranks", 2, 2)):
+        runs[name] = tmp_path / name
+        arguments = [f"env.replicas={replicas}", f"hydra.run.dir={runs[name]}"]
+        result = run(["physicsrl-train", *settings, *arguments], tmp_path, ranks)
+        assert result.returncode == 0, result.stdout + result.stderr
+        summary = json.loads((runs[name] / "summary.json").read_text())["summary"]
+        assert summary["environments"] == 4 and summary["frames"] == 4 * 2 * 4
+    keys = ("iteration", "frames", "success", "shocks")
+    assert_same_rows(
+        table(runs["one_rank"] / "eval.csv"), table(runs["two_ranks"] / "eval.csv"), keys
+    )
 
+    evaluations = {
+        "torch": (1, "[]"),
+        "petsc": (1, '["env.model.backend=petsc","env.replicas=1"]'),
+        "groups": (2, '["env.replicas=2"]'),
+    }
     rows = {}
-    for backend, overrides in (
-        ("torch", "[]"),
-        ("petsc", '["env.model.backend=petsc","env.replicas=1"]'),
-    ):
+    for name, (ranks, overrides) in evaluations.items():
         evaluate = [
-            str(bin_dir / "physicsrl-eval"),
-            f"run={tmp_path / 'run'}",
+            "physicsrl-eval",
+            f"run={runs['one_rank']}",
             "seeds=3",
             "gif=false",
             "curve=false",
             f"overrides={overrides}",
-            f"hydra.run.dir={tmp_path / backend}",
+            f"hydra.run.dir={tmp_path / name}",
         ]
-        result = subprocess.run(evaluate, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        result = run(evaluate, tmp_path, ranks)
         assert result.returncode == 0, result.stdout + result.stderr
-        with open(tmp_path / backend / "eval.csv") as stream:
-            rows[backend] = list(csv.DictReader(stream))
-    on_two = [str(MPIEXEC), "-n", "2", str(bin_dir / "physicsrl-eval"), f"run={tmp_path / 'run'}"]
-    result = subprocess.run(on_two, cwd=tmp_path, capture_output=True, text=True, timeout=120)
-    assert result.returncode == 2 and result.stderr.count("on one MPI rank, got 2 ranks") == 1
-    assert len(rows["torch"]) == len(rows["petsc"]) > 3  # the agent and the baselines
+        rows[name] = table(tmp_path / name / "eval.csv")
+    assert len(rows["torch"]) > 3  # the agent and the baselines
     assert {row["success"] for row in rows["petsc"]} == {"0.0", "1.0"}
-    for ours, theirs in zip(rows["torch"], rows["petsc"], strict=True):
-        if ours["policy"].startswith("random"):
-            continue
-        assert (ours["policy"], ours["seed"]) == (theirs["policy"], theirs["seed"])
-        assert float(ours["return"]) == pytest.approx(float(theirs["return"]), abs=1e-4)
-        for key in ("length", "success", "shocks"):
-            assert ours[key] == theirs[key], (key, ours, theirs)
+    keys = ("policy", "seed", "length", "success", "shocks")
+    assert_same_rows(rows["torch"], rows["petsc"], keys)
+    assert_same_rows(rows["torch"], rows["groups"], keys)
+
+    evaluate = ["physicsrl-eval", f"run={runs['one_rank']}", "mpi.ranks_per_env=2"]
+    result = run(evaluate, tmp_path, ranks=2)
+    assert result.returncode == 2
+    assert result.stderr.count("runs each group's env.replicas on one rank") == 1

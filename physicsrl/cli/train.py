@@ -15,15 +15,14 @@ from physicsrl.cli import command
 
 
 def check_task(cfg) -> None:
-    """The layout of environments over the job's ranks and the backend's (replicas run on one
-    rank), then :func:`check_run`."""
+    """The layout of environments over the job's ranks and the backend's (a group's replicas
+    run on one rank), then :func:`check_run`."""
     from omegaconf import OmegaConf
 
     from physicsrl.launch import check_backend, check_layout, launched_size
 
-    ranks = launched_size() or 1
-    check_layout(cfg.mpi.ranks_per_env, ranks)
-    check_backend(OmegaConf.select(cfg, "env.model.backend"), ranks)
+    check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
+    check_backend(OmegaConf.select(cfg, "env.model.backend"), cfg.mpi.ranks_per_env)
     check_run(cfg)
 
 

@@ -2,9 +2,9 @@ r"""The ATP task with B replicas on one process: a TorchRL environment of ``batc
 
 The task of :mod:`physicsrl.envs.atp` (same config, observation, reward, draws and events), its
 time loop on torch (:class:`~physicsrl.fem.batched.BatchedMonodomain`, CPU or CUDA) for all
-replicas at once, on this process's own copy of the mesh (``MPI.COMM_SELF``). Training and
-evaluation run it on one MPI rank (``mpi.ranks=1``); spreading replicas over N groups is not
-built.
+replicas at once, on this process's own copy of the mesh (``MPI.COMM_SELF``). Under MPI each
+rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x B members
+(:class:`~physicsrl.envs.groups.GroupedEnv`).
 
 - Reset honours TorchRL's ``"_reset"`` mask: only the replicas it selects start a new episode
   (their rows of u and w are written from the snapshot library, or induced, all new draws of

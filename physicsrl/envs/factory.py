@@ -12,7 +12,7 @@ Call it on every rank, in the same order relative to other coordinated objects; 
 leader calls ``reset``/``step``, inside ``with coordinator:``. Bad settings raise ValueError
 naming the key (``env.dt must be ...``). With ``env.model.backend=torch`` (the ATP task) the env
 is :class:`~physicsrl.envs.batched.BatchedATPEnv`: ``env.replicas`` copies of the task on this
-rank alone (the job must have one rank).
+rank alone (a group of one rank).
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from mpi4py import MPI
 from torchrl.envs import EnvBase
 
 from physicsrl.checks import build, plain
@@ -50,7 +49,7 @@ def make_env(cfg: Mapping | Any, coordinator: Coordinator) -> EnvBase:
     if getattr(getattr(config, "model", None), "backend", None) == "torch":
         from physicsrl.envs.batched import BatchedATPEnv  # torch's time loop: imported on use
 
-        check_backend("torch", MPI.COMM_WORLD.size)
+        check_backend("torch", coordinator.comm.size)
         return BatchedATPEnv(config, observation, reward, seed=cfg.get("seed"))
     task = task_class(coordinator, config, observation)
     return PhysicsEnv(task, reward, seed=cfg.get("seed"))

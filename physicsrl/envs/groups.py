@@ -7,7 +7,8 @@ environment does; the first rank of a group leads it. World rank 0 runs the lear
 leads group 0.
 
 On world rank 0 the N environments appear as one TorchRL environment of ``batch_size=[N]``
-(:class:`GroupedEnv`). Its ``step`` sends the N - 1 remote actions to their group leaders
+(:class:`GroupedEnv`; ``[N B]`` when each group's env is a batch of B members, as the torch
+backend's replicas are). Its ``step`` sends the N - 1 remote actions to their group leaders
 (MPI point-to-point on a communicator of the group leaders), steps group 0's environment
 meanwhile, then gathers the N - 1 remote transitions; ``reset`` restarts only the
 environments that the ``"_reset"`` mask names, so TorchRL's ``Collector`` and
@@ -79,46 +80,70 @@ class Layout:
         return cls(world, ranks_per_env, world.size // ranks_per_env, group, comm, leaders)
 
 
-class _Member:
-    """One environment of the batch as seen from world rank 0: local (group 0) or remote."""
+class _OneMember:
+    """A plain environment seen as a batch of one member (index 0): the interface of
+    :class:`~physicsrl.envs.members.Members` that the groups speak."""
 
-    def __init__(self, index: int, env: EnvBase | None, leaders: MPI.Comm | None):
-        self.index, self.env, self.leaders = index, env, leaders
-        self.state: TensorDictBase | None = None  # the local env's current tensordict
+    def __init__(self, env: EnvBase):
+        self.env = env
+        self.state: TensorDictBase | None = None  # the env's current tensordict
+
+    def seed_each(self, seeds, indices=(0,)):
+        self.env.set_seed(seeds[0])
+
+    def reset_some(self, indices) -> dict[int, dict]:
+        self.state = self.env.reset()
+        return {0: numpy_leaves(self.state)}
+
+    def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
+        self.state["action"] = torch.as_tensor(actions[0])
+        self.state = self.env.step(self.state)["next"]
+        return {0: numpy_leaves(self.state)}
+
+    def rng_state(self) -> list[dict]:
+        return [self.env.rng.bit_generator.state]
+
+    def set_rng_state(self, states) -> None:
+        self.env.rng.bit_generator.state = states[0]
+
+
+def _members(env: EnvBase) -> Members | _OneMember:
+    return env if isinstance(env, Members) else _OneMember(env)
+
+
+def _run(members: Members | _OneMember, command: int, argument):
+    """Carry out ``command`` on a group's members (local indices; on its group leader)."""
+    if command == _SEED:
+        seeds, indices = argument
+        return members.seed_each(seeds, indices)
+    if command == _RESET:
+        return members.reset_some(argument)
+    if command == _STEP:
+        return members.step_some(argument)
+    if command == _GET_RNG:
+        return members.rng_state()
+    if command == _SET_RNG:
+        return members.set_rng_state(argument)
+    raise ValueError(f"unknown command {command!r}")
+
+
+class _Group:
+    """One group's environment as seen from world rank 0: local (group 0) or remote."""
+
+    def __init__(self, index: int, members: Members | _OneMember | None, leaders: MPI.Comm):
+        self.index, self.members, self.leaders = index, members, leaders
 
     def send(self, command: int, argument=None) -> None:
-        if self.env is None:
+        if self.members is None:
             self.leaders.send((command, argument), dest=self.index, tag=_REQUEST)
 
     def result(self, command: int, argument=None):
         """Run ``command`` here (local) or collect the reply to the request sent (remote)."""
-        if self.env is None:
+        if self.members is None:
             with timeit("groups/wait"):  # the remote group's work, not the learner's own cost
                 self.leaders.Probe(source=self.index, tag=_REPLY)
             return self.leaders.recv(source=self.index, tag=_REPLY)
-        return _run(self, command, argument)
-
-
-def _run(member: _Member, command: int, argument):
-    """Carry out ``command`` on the environment of ``member`` (on its group leader)."""
-    env = member.env
-    if command == _SEED:
-        env.set_seed(argument)
-        return None
-    if command == _RESET:
-        member.state = env.reset()
-        return numpy_leaves(member.state)
-    if command == _STEP:
-        member.state["action"] = torch.as_tensor(argument)
-        step = env.step(member.state)
-        member.state = step["next"]
-        return numpy_leaves(member.state)
-    if command == _GET_RNG:
-        return env.rng.bit_generator.state
-    if command == _SET_RNG:
-        env.rng.bit_generator.state = argument
-        return None
-    raise ValueError(f"unknown command {command!r}")
+        return _run(self.members, command, argument)
 
 
 def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: float = 0.002):
@@ -127,7 +152,7 @@ def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: fl
     coordinator's follower does (:func:`~physicsrl.coordinated.wait_for`: busily for ``spin_s``
     seconds, then sleeping at most ``max_sleep_s`` between polls), so that it leaves the core
     to a learner that trains."""
-    member = _Member(leaders.rank, env, None)
+    members = _members(env)
     oversubscribed = leaders.Get_size() > len(os.sched_getaffinity(0))
     request = functools.partial(leaders.Iprobe, source=0, tag=_REQUEST)
     while True:
@@ -135,87 +160,97 @@ def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: fl
         command, argument = leaders.recv(source=0, tag=_REQUEST)
         if command == _CLOSE:
             return int(argument)
-        leaders.send(_run(member, command, argument), dest=0, tag=_REPLY)
+        leaders.send(_run(members, command, argument), dest=0, tag=_REPLY)
 
 
 class GroupedEnv(Members):
-    """The N environments of a :class:`Layout` as one TorchRL env of ``batch_size=[N]``
-    (world rank 0 only; see the module docstring and :class:`~physicsrl.envs.members.Members`).
+    """The environments of the N groups of a :class:`Layout` as one TorchRL env (world rank 0
+    only; see the module docstring and :class:`~physicsrl.envs.members.Members`). A group's
+    environment is one member, or B members when it is itself a batch (the replicas of
+    :class:`~physicsrl.envs.batched.BatchedATPEnv`): ``batch_size=[N B]``, member g B + j being
+    member j of group g.
 
-    Keys and specs are those of the member environments with a leading dimension N.
+    Keys and specs are those of one member with a leading dimension N B.
     """
 
     def __init__(self, env: EnvBase, layout: Layout, seed: int | None = None):
         if layout.world.rank != 0:
             raise ValueError("GroupedEnv lives on world rank 0 (the learner)")
-        n = layout.n_envs
+        self.per_group = env.batch_size[0] if isinstance(env, Members) else 1
+        n = layout.n_envs * self.per_group
         super().__init__(n, device=env.device)
         self.layout = layout
-        self.members = [_Member(0, env, None)] + [
-            _Member(i, None, layout.leaders) for i in range(1, n)
+        self.groups = [_Group(0, _members(env), layout.leaders)] + [
+            _Group(g, None, layout.leaders) for g in range(1, layout.n_envs)
         ]
+        self.local_env = env
         shape = torch.Size([n])
-        self.observation_spec = env.observation_spec.expand(shape + env.observation_spec.shape)
-        self.action_spec = env.action_spec.expand(shape + env.action_spec.shape)
-        self.reward_spec = env.reward_spec.expand(shape + env.reward_spec.shape)
-        self.done_spec = env.done_spec.expand(shape + env.done_spec.shape)
+        for name in ("observation_spec", "action_spec", "reward_spec", "done_spec"):
+            one = getattr(env, f"{name}_unbatched")
+            setattr(self, name, one.expand(shape + one.shape))
         self._set_seed(seed)
-
-    @property
-    def local_env(self) -> EnvBase:
-        """Group 0's environment (on the learner's rank: plots, fields)."""
-        return self.members[0].env
 
     @property
     def task(self):
         """Group 0's task (None for an env without one): its settings and hooks (baselines,
         scores) are every group's."""
-        return vars(self.local_env).get("task")  # not getattr: EnvBase.__getattr__ searches on
+        env = self.local_env
+        # not getattr for a plain env: EnvBase.__getattr__ searches on
+        return env.task if isinstance(env, Members) else vars(env).get("task")
 
     @property
     def reward_fn(self):
         return self.local_env.reward_fn
 
-    def _all(self, command: int, arguments: Sequence, indices: Sequence[int]) -> list:
-        """Send ``command`` with ``arguments[k]`` to member ``indices[k]``, remote ones first,
-        so that they work while the local one does; the results in the order of ``indices``."""
-        members = [self.members[i] for i in indices]
-        for member, argument in zip(members, arguments, strict=True):
-            member.send(command, argument)
-        local = [k for k, m in enumerate(members) if m.env is not None]
-        results = [None] * len(members)
-        for k in local:
-            results[k] = members[k].result(command, arguments[k])
-        for k, member in enumerate(members):
-            if k not in local:
-                results[k] = member.result(command)
+    def _by_group(self, indices: Sequence[int]) -> dict[int, list[tuple[int, int]]]:
+        """Group -> [(position in ``indices``, member index within the group)]."""
+        groups: dict[int, list[tuple[int, int]]] = {}
+        for position, k in enumerate(indices):
+            groups.setdefault(k // self.per_group, []).append((position, k % self.per_group))
+        return groups
+
+    def _all(self, command: int, arguments: dict[int, object]) -> dict[int, object]:
+        """Send ``command`` with ``arguments[g]`` to each group g named, remote ones first, so
+        that they work while the local one does; the results by group."""
+        for g, argument in arguments.items():
+            self.groups[g].send(command, argument)
+        results = {g: self.groups[g].result(command, a) for g, a in arguments.items() if g == 0}
+        results |= {g: self.groups[g].result(command) for g in arguments if g != 0}
         return results
 
     def seed_each(self, seeds: Sequence[int | None], indices: Sequence[int] | None = None):
         indices = range(self.batch_size[0]) if indices is None else indices
-        self._all(_SEED, list(seeds), list(indices))
+        groups = self._by_group(indices)
+        self._all(
+            _SEED, {g: ([seeds[p] for p, _ in m], [j for _, j in m]) for g, m in groups.items()}
+        )
 
     def rng_state(self) -> list[dict]:
-        n = self.batch_size[0]
-        return self._all(_GET_RNG, [None] * n, range(n))
+        states = self._all(_GET_RNG, dict.fromkeys(range(len(self.groups))))
+        return [state for g in range(len(self.groups)) for state in states[g]]
 
     def set_rng_state(self, states: Sequence[dict]) -> None:
-        n = self.batch_size[0]
+        n, B = self.batch_size[0], self.per_group
         if len(states) != n:
             raise ValueError(f"{len(states)} generator states for {n} environments")
-        self._all(_SET_RNG, list(states), range(n))
+        self._all(_SET_RNG, {g: list(states[g * B : (g + 1) * B]) for g in range(len(self.groups))})
 
     def reset_some(self, indices: Sequence[int]) -> dict[int, dict]:
-        return dict(zip(indices, self._all(_RESET, [None] * len(indices), indices), strict=True))
+        groups = self._by_group(indices)
+        results = self._all(_RESET, {g: [j for _, j in m] for g, m in groups.items()})
+        return {indices[p]: results[g][j] for g, m in groups.items() for p, j in m}
 
     def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
         indices = list(actions)
-        return dict(zip(indices, self._all(_STEP, list(actions.values()), indices), strict=True))
+        groups = self._by_group(indices)
+        arguments = {g: {j: actions[indices[p]] for p, j in m} for g, m in groups.items()}
+        results = self._all(_STEP, arguments)
+        return {indices[p]: results[g][j] for g, m in groups.items() for p, j in m}
 
     def close_groups(self, status: int = 0) -> None:
         """Release the other group leaders (their serve loops return ``status``)."""
-        for member in self.members[1:]:
-            member.send(_CLOSE, status)
+        for group in self.groups[1:]:
+            group.send(_CLOSE, status)
 
 
 @contextmanager
