@@ -101,7 +101,7 @@ class BatchedATPEnv(Members):
         self.w = torch.ones_like(self.u)
         self.decisions = np.zeros(B, dtype=np.int64)
         self.intervals = np.zeros(B, dtype=np.int64)
-        self.rngs = [np.random.default_rng() for _ in range(B)]
+        self.rngs: list[np.random.Generator] = [None] * B  # seeded below (member_seed)
 
         flag = Categorical(2, shape=(B, 1), dtype=torch.bool)
         self.observation_spec = Composite(
