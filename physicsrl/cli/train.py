@@ -73,8 +73,9 @@ def check_run(cfg) -> None:
             f"{task.name} task (its keys: {', '.join(inputs)})"
         )
     replicas = getattr(task_config, "replicas", 1)
-    dofs = (mesh.cells + 1) ** 2 if isinstance(mesh, SquareMesh) else 0
-    state = replicas * dofs * STATE_BYTES_PER_DOF if replicas > 1 else 0
+    torch_backend = getattr(getattr(task_config, "model", None), "backend", None) == "torch"
+    dofs = (mesh.cells + 1) ** 2 if torch_backend and isinstance(mesh, SquareMesh) else 0
+    state = replicas * dofs * STATE_BYTES_PER_DOF
     how = f"{STATE_BYTES_PER_DOF} bytes per replica and dof"
     check_memory(config, inputs, task.n_actions, {f"env.replicas={replicas}": (state, how)})
 

@@ -134,8 +134,10 @@ class BatchedATPEnv(Members):
             rng.bit_generator.state = state
 
     # the simulation ----------------------------------------------------------------------
-    def _integrals(self, u: torch.Tensor) -> np.ndarray:
-        """(len(u), K): row 0 the integral of u, then the observation."""
+    def _integrals(self, rows: torch.Tensor | None) -> np.ndarray:
+        """(replicas, K) of the replicas ``rows`` (None: all): row 0 the integral of u, then
+        the observation."""
+        u = self.u if rows is None else self.u[rows]
         return (u @ self.rows.T).double().cpu().numpy()
 
     def _run(self, u, w, current, duration: float) -> torch.Tensor:
@@ -225,11 +227,10 @@ class BatchedATPEnv(Members):
         index = np.asarray(indices, dtype=np.int64)
         self._start(index.tolist())
         rows = self._rows(index)
-        observations = self._integrals(self.u if rows is None else self.u[rows])[:, 1:]
         false = np.zeros(len(index), dtype=bool)
-        values = self._values(index, observations, false, false)
-        values |= {"done": values["diverged"].copy(), "terminated": values["diverged"].copy()}
-        values["truncated"] = values["diverged"].copy()
+        values = self._values(index, self._integrals(rows)[:, 1:], false, false)
+        for key in ("done", "terminated", "truncated"):
+            values[key] = np.zeros((len(index), 1), dtype=bool)
         return self._split(index, values)
 
     def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
@@ -242,7 +243,7 @@ class BatchedATPEnv(Members):
         self.intervals[index] += 1
         rows = self._rows(index)
         finite = self._advance(rows, shock)
-        values = self._integrals(self.u if rows is None else self.u[rows])
+        values = self._integrals(rows)
         success = finite & (values[:, 0] < config.success_threshold)
         last = self.decisions[index] >= config.max_decisions
         waiting = np.flatnonzero(finite & ~success & last)
@@ -252,7 +253,7 @@ class BatchedATPEnv(Members):
             waiting_rows = torch.as_tensor(index[waiting], device=self.u.device)
             finite[waiting] &= self._advance(waiting_rows, None)
             self.intervals[index[waiting]] += 1
-            values[waiting] = self._integrals(self.u[waiting_rows])
+            values[waiting] = self._integrals(waiting_rows)
             success[waiting] = finite[waiting] & (values[waiting, 0] < config.success_threshold)
             waiting = waiting[finite[waiting] & ~success[waiting]]
         diverged = ~finite
