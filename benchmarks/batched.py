@@ -8,6 +8,9 @@ Two grids, each in one run beside its baseline (one process, one thread each):
 - the resolved 1000 x 1000 grid, explicit scheme: B = 1, 8 against the compiled C pass of
   ``MonodomainMitchellSchaeffer(scheme="explicit")``; goal: per replica-step within 1.5x of it.
 
+Each torch row runs eager (float64) and through ``torch.compile`` (``compiled=True``; float64,
+and float32 for the report's grid); the compilation is done before the clock starts.
+
 The state is a front running into resting tissue (u = 1 on x < -40, w = 1): the work per step
 does not depend on it, except the CG iterations (counted). The GPU row needs a CUDA device
 (``--device cuda``). Writes benchmarks/results/batched.txt with the command and load average.
@@ -51,13 +54,14 @@ def reference_rate(domain, scheme: str, steps: int) -> float:
         return steps / (time.perf_counter() - start)
 
 
-def batched_rate(domain, scheme: str, replicas: int, steps: int, device: str):
-    """(replica-steps per second, CG iterations per step) of the torch loop."""
+def batched_rate(domain, scheme: str, replicas: int, steps: int, device: str, **settings):
+    """(replica-steps per second, CG iterations per step) of the torch loop; ``settings``:
+    ``compiled`` and ``dtype`` of ``BatchedMonodomain``."""
     model = {**MSModel().numerics(), "scheme": scheme}
-    sim = BatchedMonodomain(domain, **model, device=device)
+    sim = BatchedMonodomain(domain, **model, device=device, **settings)
     u = sim.nodal(front).expand(replicas, -1).clone()
     w = torch.ones_like(u)
-    sim.advance(u, w, None, 1)
+    sim.advance(u, w, None, 2)
     if device == "cuda":
         torch.cuda.synchronize()
     iterations = sim.iterations
@@ -91,31 +95,47 @@ def main() -> None:
     for line in lines:
         print(line)
     goals = []
+    variants = {
+        "eager float64": {},
+        "compiled float64": {"compiled": True},
+        "compiled float32": {"compiled": True, "dtype": "float32"},
+    }
     report("\n60 x 60, implicit (report's scheme)")
     domain = SquareMesh(60, 50.0, "quadrilateral").create(MPI.COMM_SELF)
     petsc = reference_rate(domain, "implicit", args.steps * 5)
     report(f"  PETSc path, 1 replica: {petsc:10.0f} replica-steps/s")
-    for B in args.replicas:
-        rate, iterations = batched_rate(domain, "implicit", B, args.steps, args.device)
-        report(
-            f"  torch B = {B:4d}:        {rate:10.0f} replica-steps/s ({rate / petsc:.2f}x PETSc, "
-            f"{iterations:.1f} CG iterations per step)"
-        )
-        if B == 64:
-            goals.append(("60 x 60 implicit, B = 64 >= 4x PETSc per replica", rate / petsc >= 4))
+    for name, settings in variants.items():
+        for B in args.replicas:
+            rate, iterations = batched_rate(
+                domain, "implicit", B, args.steps, args.device, **settings
+            )
+            report(
+                f"  torch {name}, B = {B:4d}: {rate:8.0f} replica-steps/s "
+                f"({rate / petsc:.2f}x PETSc, {iterations:.1f} CG iterations per step)"
+            )
+            if B == 64:
+                goals.append((f"60 x 60 implicit, B = 64 >= 4x PETSc ({name})", rate / petsc >= 4))
 
     n = args.resolved_cells
     report(f"\n{n} x {n}, explicit")
     domain = SquareMesh(n, 50.0, "quadrilateral").create(MPI.COMM_SELF)
     compiled = reference_rate(domain, "explicit", args.steps)
     report(f"  compiled C path, 1 replica: {compiled:8.1f} replica-steps/s")
-    for B in args.resolved_replicas:
-        rate, _ = batched_rate(domain, "explicit", B, args.steps, args.device)
-        report(f"  torch B = {B:4d}: {rate:8.1f} replica-steps/s ({rate / compiled:.2f}x C)")
-        if B == args.resolved_replicas[-1]:
-            goals.append(
-                (f"{n} x {n} explicit, per replica-step within 1.5x of C", rate >= compiled / 1.5)
+    for name in list(variants)[:2]:
+        best = 0.0
+        for B in args.resolved_replicas:
+            rate, _ = batched_rate(domain, "explicit", B, args.steps, args.device, **variants[name])
+            report(
+                f"  torch {name}, B = {B:4d}: {rate:8.1f} replica-steps/s "
+                f"({rate / compiled:.2f}x C)"
             )
+            best = max(best, rate)
+        goals.append(
+            (
+                f"{n} x {n} explicit, within 1.5x of C per replica-step ({name})",
+                best >= compiled / 1.5,
+            )
+        )
     if args.device == "cpu":
         report("\nGPU row: not measured (no GPU lent in this session)")
     report(f"load average after: {os.getloadavg()[0]:.2f}")

@@ -32,16 +32,20 @@ def induction(c):
     )
 
 
+@pytest.mark.parametrize("cell", ["quadrilateral", "triangle"])
 @pytest.mark.parametrize("scheme", ["implicit", "explicit"])
-def test_replicas_equal_the_dolfinx_path(scheme):
+def test_replicas_equal_the_dolfinx_path(scheme, cell):
     """Three replicas with different initial gates and stimuli, 150 steps with the current then
-    60 without, on 24 x 24 Q1 cells of [-50, 50]^2: each replica equals its own run of
+    60 without, on 24 x 24 cells of [-50, 50]^2: each replica equals its own run of
     MonodomainMitchellSchaeffer on the same draws. Implicit: the PETSc path (CG + ICC, rtol
-    1e-10) and the batched CG + Jacobi both stop at rtol 1e-10, so they agree to the tolerance
-    of the PETSc path's own 1 vs 2 rank tests, 1e-6 (u is O(1); measured: 1.1e-7); explicit:
-    the compiled C pass, to round-off (1e-12)."""
-    domain = SquareMesh(24, 50.0, "quadrilateral").create(MPI.COMM_SELF)
+    1e-10) against the direct solve (quadrilaterals: a structured grid) or the batched CG +
+    Jacobi (triangles; rtol 1e-10), so they agree to the tolerance of the PETSc path's own 1
+    vs 2 rank tests, 1e-6 (u is O(1); measured: 1.1e-7); explicit: the compiled C pass, to
+    round-off (1e-12), with the 9-point stencil on quadrilaterals and the CSR product on
+    triangles."""
+    domain = SquareMesh(24, 50.0, cell).create(MPI.COMM_SELF)
     batched = BatchedMonodomain(domain, **{**MODEL, "scheme": scheme}, device="cpu")
+    assert (batched._grid is not None) == (cell == "quadrilateral")
     centres = (-8.0, 0.0, 6.5)
     expected_u, expected_w, currents = [], [], []
     for c in centres:
@@ -66,8 +70,8 @@ def test_replicas_equal_the_dolfinx_path(scheme):
     np.testing.assert_allclose(w.numpy(), expected_w, rtol=0, atol=tolerance)
 
 
-def planar_wave(dtype, samples=1200, every=10, cells=150, length=15.0):
-    """Explicit scheme on the strip [0, length] x [0, length / cells] (h = 0.1), u = 1 on
+def planar_wave(dtype, scheme="explicit", samples=1200, every=10, cells=150, length=15.0):
+    """The scheme on the strip [0, length] x [0, length / cells] (h = 0.1), u = 1 on
     x < 1 at t = 0: (conduction velocity between x = 5 and x = 10, action potential duration
     at x = 10), from the times u crosses 0.5 (linear interpolation between samples taken
     every ``every`` steps)."""
@@ -77,7 +81,7 @@ def planar_wave(dtype, samples=1200, every=10, cells=150, length=15.0):
         [cells, 1],
         mesh.CellType.quadrilateral,
     )
-    sim = BatchedMonodomain(domain, **{**MODEL, "scheme": "explicit"}, device="cpu", dtype=dtype)
+    sim = BatchedMonodomain(domain, **{**MODEL, "scheme": scheme}, device="cpu", dtype=dtype)
     x = sim.V.tabulate_dof_coordinates()[:, 0]
     probes = [int(np.flatnonzero(np.isclose(x, p))[0]) for p in (5.0, 10.0)]
     u = sim.nodal(lambda x: (x[0] < 1.0).astype(float))[None].clone()
@@ -102,13 +106,14 @@ def planar_wave(dtype, samples=1200, every=10, cells=150, length=15.0):
     return 5.0 / (up_10 - up_5), down_10 - up_10
 
 
-def test_float32_conduction_velocity_and_apd_match_float64():
+@pytest.mark.parametrize("scheme", ["implicit", "explicit"])
+def test_float32_conduction_velocity_and_apd_match_float64(scheme):
     """The CUDA default precision: a planar wave's conduction velocity and action potential
     duration in float32 are within 0.5% of float64 (and the wave is a real one: CV within
-    the lumped scheme's range at h = 0.1, APD of the order of tau_close)."""
-    cv64, apd64 = planar_wave(torch.float64)
-    cv32, apd32 = planar_wave(torch.float32)
-    assert 0.09 < cv64 < 0.13, cv64
+    the schemes' range at h = 0.1, APD of the order of tau_close)."""
+    cv64, apd64 = planar_wave(torch.float64, scheme)
+    cv32, apd32 = planar_wave(torch.float32, scheme)
+    assert 0.09 < cv64 < 0.14, cv64
     assert 100 < apd64 < 400, apd64
     assert abs(cv32 - cv64) < 0.005 * cv64, (cv32, cv64)
     assert abs(apd32 - apd64) < 0.005 * apd64, (apd32, apd64)
@@ -139,3 +144,24 @@ def test_cuda_float32_follows_cpu_float64():
         sim.advance(u, w, current, 200)
         results.append(u.double().cpu().numpy())
     np.testing.assert_allclose(results[1], results[0], atol=1e-4)
+
+
+@pytest.mark.parametrize("scheme", ["implicit", "explicit"])
+def test_compiled_steps_equal_the_eager_ones(scheme):
+    """``compiled=True`` (torch.compile of the fused right-hand side, or of the stencil) gives
+    the eager path's state to round-off: two replicas, 150 steps with a stimulus, 30 without,
+    on 24 x 24 Q1 cells."""
+    domain = SquareMesh(24, 50.0, "quadrilateral").create(MPI.COMM_SELF)
+    _, w0, stimulus = induction(0.0)
+    ms = MonodomainMitchellSchaeffer(Coordinator(MPI.COMM_SELF), domain, I_app=stimulus)
+    results = []
+    for compiled in (False, True):
+        sim = BatchedMonodomain(domain, **{**MODEL, "scheme": scheme}, compiled=compiled)
+        u = torch.zeros(2, sim.num_dofs, dtype=sim.dtype)
+        w = torch.stack([sim.nodal(w0), sim.nodal(0.5)])
+        sim.advance(u, w, sim.tensor(np.array([ms._I_app.x.array] * 2)), 150)
+        sim.advance(u, w, None, 30)
+        results.append((u.numpy(), w.numpy()))
+    assert np.abs(results[0][0]).max() > 0.5  # excited
+    for compiled, eager in zip(results[1], results[0], strict=True):
+        np.testing.assert_allclose(compiled, eager, rtol=0, atol=1e-12)

@@ -64,6 +64,8 @@ from physicsrl.fem.resolution import report
 WAIT, SHOCK = 0, 1
 BACKENDS = ("petsc", "torch")
 """``env.model.backend`` (the first is the default)."""
+DTYPES = ("auto", "float64", "float32")
+"""``env.model.dtype`` of the torch backend (auto: float32 on CUDA, float64 on the CPU)."""
 
 
 @dataclass(frozen=True)
@@ -73,7 +75,9 @@ class MSModel:
     :class:`~physicsrl.fem.MonodomainMitchellSchaeffer`), whether to warn when the mesh
     does not resolve the front (:func:`physicsrl.fem.resolution.report`), and the backend of
     the time loop: ``petsc`` (DOLFINx/PETSc, distributed over the ranks of a group) or
-    ``torch`` (:mod:`physicsrl.envs.batched`: ``replicas`` copies on one rank, on ``device``)."""
+    ``torch`` (:mod:`physicsrl.envs.batched`: ``replicas`` copies on one rank, on ``device``,
+    in ``dtype``, through ``torch.compile`` with ``compile``: see
+    :class:`~physicsrl.fem.batched.BatchedMonodomain`)."""
 
     dt: float = 0.03
     tau_in: float = 0.3
@@ -87,6 +91,8 @@ class MSModel:
     warn_resolution: bool = True
     backend: str = BACKENDS[0]
     device: str = "cpu"
+    dtype: str = DTYPES[0]
+    compile: bool = False
 
     def __post_init__(self):
         for name in ("dt", "tau_in", "tau_out", "tau_open", "tau_close", "D"):
@@ -99,13 +105,26 @@ class MSModel:
             raise ValueError(f"warn_resolution must be true or false, got {self.warn_resolution!r}")
         choice("backend", self.backend, BACKENDS)
         choice("device", self.device, ("cpu", "cuda"))
+        choice("dtype", self.dtype, DTYPES)
+        if not isinstance(self.compile, bool):
+            raise ValueError(f"compile must be true or false, got {self.compile!r}")
+        if self.backend != "torch" and (self.dtype != DTYPES[0] or self.compile):
+            raise ValueError(
+                f"dtype={self.dtype} and compile={self.compile} need backend=torch (the PETSc "
+                "backend is float64 with its own compiled kernels)"
+            )
 
     def numerics(self) -> dict:
         """The simulator's keyword arguments: the parameters, dt, scheme and sub-steps."""
         settings = asdict(self)
-        for name in ("warn_resolution", "backend", "device"):
+        for name in ("warn_resolution", "backend", "device", "dtype", "compile"):
             del settings[name]
         return settings
+
+    def torch_settings(self) -> dict:
+        """:class:`~physicsrl.fem.batched.BatchedMonodomain`'s device, dtype and compilation."""
+        dtype = None if self.dtype == DTYPES[0] else self.dtype
+        return {"device": self.device, "dtype": dtype, "compiled": self.compile}
 
 
 @dataclass(frozen=True)

@@ -79,7 +79,9 @@ class BatchedATPEnv(Members):
         self.max_reset_attempts = max_reset_attempts
         domain = config.mesh.create(MPI.COMM_SELF)
         model = config.model
-        self.simulator = sim = BatchedMonodomain(domain, **model.numerics(), device=model.device)
+        self.simulator = sim = BatchedMonodomain(
+            domain, **model.numerics(), **model.torch_settings()
+        )
         report(sim.resolution, model.warn_resolution)
         V = sim.V
         rows = np.vstack([form_rows(V, [1.0]), observation.rows(V)])  # row 0: integral of u

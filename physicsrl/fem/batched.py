@@ -4,7 +4,7 @@ DOLFINx builds the operators once, on a mesh of this process alone (``MPI.COMM_S
 owns its replicas on its own copy of the mesh); the time loop is then torch only. The state is
 two tensors ``u``, ``w`` of shape (B, n) (n dofs of the Lagrange degree-1 space), the applied
 current a tensor (B, c) of cell values (the DG0 dofs of :class:`MonodomainMitchellSchaeffer`'s
-``I_app``) or ``None``. Every step is a few sparse-dense products and elementwise passes over
+``I_app``) or ``None``. Every step is a few matrix products (or a stencil) and elementwise passes over
 all B replicas; the schemes are those of :mod:`physicsrl.fem.monodomain` (``"implicit"``, the
 report's) and :mod:`physicsrl.fem.explicit` (``"explicit"``), for the same dt and constants.
 
@@ -22,11 +22,14 @@ reaction integral is the exact quadrature of :class:`~physicsrl.fem.quadrature.C
 (degree 5 per direction): gather the cells' dofs, values at the points (one small matrix
 product), integrand, cell vectors, ``index_add_`` into the dofs, all replicas at once. This is
 the quadrature sum of :class:`~physicsrl.fem.monodomain.MitchellSchaefferRHS` with the linear
-terms moved into M and P (exact either way). The solve is conjugate gradients with a Jacobi
-preconditioner on all B right-hand sides together (one sparse product with an (n, B) block per
-iteration), warm-started from u^n, until every replica's preconditioned residual is below
-``rtol`` times that of its right-hand side (PETSc's test with ``ksp_rtol``; the PETSc path uses
-ICC, so the two differ within the solver tolerance).
+terms moved into M and P (exact either way). On a structured grid of Q1 cells (the rectangles
+of ``mesh.create_rectangle``, checked by :func:`~physicsrl.fem.grid.grid_of`) the solve is
+direct, by fast diagonalisation (:mod:`physicsrl.fem.grid`: four dense products with the
+grid's side, all B right-hand sides in each); on any other mesh it is conjugate gradients with
+a Jacobi preconditioner on all B right-hand sides together (one sparse product with an (n, B)
+block per iteration), warm-started from u^n, until every replica's preconditioned residual is
+below ``rtol`` times that of its right-hand side (PETSc's test with ``ksp_rtol``). The PETSc
+path stops its CG at the same tolerance, so the two differ within it.
 
 Explicit (lumped mass :math:`m_i = \sum_j M_{ij}`, :func:`~physicsrl.fem.explicit.lumped_mass`):
 
@@ -36,6 +39,13 @@ Explicit (lumped mass :math:`m_i = \sum_j M_{ij}`, :func:`~physicsrl.fem.explici
         + M_L^{-1} P I\big), \qquad C = I - \Delta t D M_L^{-1} K,
 
 with the stability limit of :class:`~physicsrl.fem.explicit.ExplicitStep` (refused above it).
+On square Q1 cells :math:`C` is the 9-point stencil of :mod:`physicsrl.fem.grid` (checked
+against the assembled operator), applied to the replicas as (B, n_y, n_x) grids; elsewhere it
+is a sparse product.
+
+With ``compiled=True`` each step runs through ``torch.compile``, which fuses its elementwise
+passes, gathers and scatters into a few loops; ``tests/test_fem_batched.py`` checks it against
+the eager path.
 
 Precision: float64 by default on the CPU, float32 on CUDA (``dtype`` overrides). The potential
 is O(1) and every step adds O(dt) increments, so float32's relative rounding of 6e-8 per step
@@ -58,6 +68,7 @@ from dolfinx import fem, mesh
 
 from physicsrl.fem.errors import InvalidValue, SimulationDiverged
 from physicsrl.fem.explicit import lumped_mass
+from physicsrl.fem.grid import grid_of, square_stencil
 from physicsrl.fem.monodomain import SCHEMES
 from physicsrl.fem.quadrature import CellQuadrature
 from physicsrl.fem.resolution import resolution
@@ -107,10 +118,15 @@ class BatchedMonodomain:
     scheme, substeps:
         ``"implicit"`` or ``"explicit"`` with ``substeps`` sub-steps per dt (explicit only).
     device, dtype:
-        Where the tensors live (default :func:`default_device`) and their precision (default
-        float64 on the CPU, float32 on CUDA).
+        Where the tensors live (default :func:`default_device`) and their precision (a torch
+        dtype or its name; default float64 on the CPU, float32 on CUDA).
     rtol:
-        CG tolerance of the implicit scheme.
+        CG tolerance of the implicit scheme (on meshes that are not structured grids).
+    compiled:
+        Run the step through ``torch.compile``, which fuses its elementwise passes, gathers and
+        scatters into a few loops (C++ on the CPU, Triton on CUDA): the right-hand side of the
+        implicit scheme is then written out point by point (:meth:`fused_right_hand_side`).
+        The first steps of each batch size pay the compilation (seconds; cached on disk).
     threads:
         torch's CPU threads during the time loop (default 1: one rank per core, as MPI codes
         run; torch's default of every core made the planar-wave test 20x slower on the
@@ -123,7 +139,7 @@ class BatchedMonodomain:
     num_dofs, num_cells:
         n and c of the state (B, n) and the current (B, c).
     iterations:
-        CG iterations of all implicit steps so far.
+        CG iterations of all implicit steps so far (none on a structured grid: direct solve).
     resolution:
         How well the mesh resolves the front (:func:`physicsrl.fem.resolution.resolution`).
     """
@@ -142,9 +158,10 @@ class BatchedMonodomain:
         scheme: str = SCHEMES[0],
         substeps: int = 1,
         device: str | torch.device | None = None,
-        dtype: torch.dtype | None = None,
+        dtype: torch.dtype | str | None = None,
         rtol: float = CG_RTOL,
         threads: int = 1,
+        compiled: bool = False,
     ):
         if domain.comm.size != 1:
             raise InvalidValue("BatchedMonodomain: the mesh must live on MPI.COMM_SELF")
@@ -159,6 +176,7 @@ class BatchedMonodomain:
             positive(name, value)
         self.u_gate = finite("u_gate", u_gate)
         self.device = torch.device(default_device() if device is None else device)
+        dtype = getattr(torch, dtype) if isinstance(dtype, str) else dtype
         self.dtype = dtype or (torch.float32 if self.device.type == "cuda" else torch.float64)
         self.scheme, self.substeps, self.dt = scheme, substeps, float(dt)
         self.iterations = 0
@@ -177,6 +195,7 @@ class BatchedMonodomain:
         h = self.dt / substeps  # the (sub-)step
         self._gate = (u_gate, 1.0 - h / tau_open, h / tau_open, 1.0 - h / tau_close)
         self._k_in, self._k_out = h / tau_in, h / tau_out
+        compile = torch.compile if compiled else lambda step: step
         if scheme == "explicit":
             m = lumped_mass(V)
             row_sums = np.asarray(abs(stiffness).sum(axis=1)).ravel()
@@ -188,12 +207,28 @@ class BatchedMonodomain:
                     "scheme='implicit'"
                 )
             inverse = scipy.sparse.diags(1.0 / m)
-            self._C = _sparse(
-                scipy.sparse.identity(len(m)) - h * D * inverse @ stiffness, self.device, self.dtype
-            )
+            C = scipy.sparse.identity(len(m)) - h * D * inverse @ stiffness
             self._current = _sparse(h * inverse @ current, self.device, self.dtype)
+            square = square_stencil(V, C.__matmul__, h * D / 3)
+            if square is None:
+                self._grid, self._C = None, _sparse(C, self.device, self.dtype)
+                self._step = compile(self._explicit_step)
+            else:
+                self._grid, self._c = square
+                self._step = compile(self._stencil_step)
+            self._order = (
+                None if self._grid is None else torch.tensor(self._grid.order, device=self.device)
+            )
             return
         A = mass + self.dt * D * stiffness
+        self._grid = grid_of(V, mass, stiffness)
+        self._order = None
+        if self._grid is not None:
+            qx, qy, d = self._grid.fast_diagonalisation(self.dt * D)
+            self._order = torch.tensor(self._grid.order, device=self.device)
+            self._qx, self._qy = self.tensor(qx), self.tensor(qy)
+            self._qx_t, self._qy_t = self._qx.T.contiguous(), self._qy.T.contiguous()
+            self._d = self.tensor(d)[:, :, None]
         self._A = _sparse(A, self.device, self.dtype)
         self._inverse_diagonal = self.tensor(1.0 / A.diagonal())[:, None]
         self._M = _sparse(mass, self.device, self.dtype)
@@ -209,8 +244,12 @@ class BatchedMonodomain:
             else quadrature.point_weights
         )
         self._weights = self.tensor(self._k_in * weights.T)  # (q, cells)
+        self._phi_rows = quadrature.phi.tolist()
         # values per block of the reaction: one block on a GPU; ~1 MB work arrays on a CPU
         self.block_values = 2**62 if self.device.type == "cuda" else 2**17
+        self._right_hand_side = compile(
+            self.fused_right_hand_side if compiled else self.blocked_right_hand_side
+        )
 
     # state --------------------------------------------------------------------------------
     def nodal(self, f) -> torch.Tensor:
@@ -234,16 +273,25 @@ class BatchedMonodomain:
         ``current`` ((B, c) cell values or None); return whether each replica's u is still
         finite, (B,) bool (a replica that is not does not stop the others). Inside, the
         replicas are columns ((n, B): sparse products and gathers then move contiguous rows of
-        B values)."""
+        B values), or, for the explicit stencil, (B, n_y, n_x) grids."""
         with self._threads():
-            U, W = u.T.contiguous(), w.T.contiguous()
             forcing = None if current is None else self._current @ current.T.to(self.dtype)
-            if self.scheme == "explicit":
+            if self.scheme == "explicit" and self._grid is not None:
+                side = (len(u), len(self._grid.y), len(self._grid.x))
+                U, W = u[:, self._order].view(side), w[:, self._order].view(side)
+                if forcing is not None:
+                    forcing = forcing.T[:, self._order].view(side)
                 for _ in range(steps * self.substeps):
-                    self._explicit_step(U, W, forcing)
-            else:
-                for _ in range(steps):
-                    self._implicit_step(U, W, forcing)
+                    U, W = self._step(U, W, forcing)
+                u[:, self._order], w[:, self._order] = U.view(len(u), -1), W.view(len(u), -1)
+                return torch.isfinite(u).all(dim=1)
+            U, W = u.T.contiguous(), w.T.contiguous()
+            for _ in range(steps * self.substeps):
+                if self.scheme == "explicit":
+                    U, W = self._step(U, W, forcing)
+                else:
+                    b, W = self._right_hand_side(U, W, forcing)
+                    self.solve(b, U)
             u.copy_(U.T)
             w.copy_(W.T)
             return torch.isfinite(u).all(dim=1)
@@ -261,18 +309,33 @@ class BatchedMonodomain:
         finally:
             torch.set_num_threads(previous)
 
-    def _gate_update(self, u: torch.Tensor, w: torch.Tensor) -> None:
-        """w <- forward Euler of the gate equation, from u^n and w^n."""
+    def _gated(self, u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """w^{n+1}: forward Euler of the gate equation, from u^n and w^n."""
         u_gate, a_open, b_open, a_close = self._gate
-        w.copy_(torch.where(u < u_gate, w * a_open + b_open, w * a_close))
+        return torch.where(u < u_gate, w * a_open + b_open, w * a_close)
 
-    def _explicit_step(self, u, w, forcing) -> None:
-        new = self._C @ u
-        new += u * (self._k_in * w * u * (1.0 - u) - self._k_out)
-        if forcing is not None:
-            new += forcing
-        self._gate_update(u, w)
-        u.copy_(new)
+    def _nodal_reaction(self, u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """The explicit scheme's reaction increment dt (w u^2 (1 - u)/tau_in - u/tau_out)."""
+        return u * (self._k_in * w * u * (1.0 - u) - self._k_out)
+
+    def _explicit_step(self, u, w, forcing):
+        """(u^{n+1}, w^{n+1}) of the explicit scheme, replicas as columns (n, B)."""
+        new = self._C @ u + self._nodal_reaction(u, w)
+        return (new if forcing is None else new + forcing), self._gated(u, w)
+
+    def _stencil_step(self, u, w, forcing):
+        """(u^{n+1}, w^{n+1}) of the explicit scheme on square cells, u and w (B, n_y, n_x):
+        the 9-point stencil of :mod:`physicsrl.fem.grid`, the Neumann condition a mirror."""
+        padded = torch.nn.functional.pad(u, (1, 1, 1, 1), mode="reflect")
+        ny, nx = u.shape[1:]
+        ring = sum(
+            padded[:, 1 + di : ny + 1 + di, 1 + dj : nx + 1 + dj]
+            for di in (-1, 0, 1)
+            for dj in (-1, 0, 1)
+            if di or dj
+        )
+        new = u - self._c * (8.0 * u - ring) + self._nodal_reaction(u, w)
+        return (new if forcing is None else new + forcing), self._gated(u, w)
 
     def reaction(self, u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         r"""(n, B): :math:`\frac{\Delta t}{\tau_\mathrm{in}} \int w u^2 (1 - u) \phi_i dx`
@@ -293,15 +356,43 @@ class BatchedMonodomain:
             out.index_add_(0, flat, (phi_t @ F).view(-1, B))
         return out
 
-    def _implicit_step(self, u, w, forcing) -> None:
+    def blocked_right_hand_side(self, u, w, forcing) -> tuple[torch.Tensor, torch.Tensor]:
+        """(b, w^{n+1}) of an implicit step (module docstring) for the columns of ``u``, ``w``
+        (n, B): the sparse product with M and :meth:`reaction`."""
         b = self.reaction(u, w)
         b += (1.0 - self._k_out) * (self._M @ u)
-        if forcing is not None:
-            b += forcing
-        self._gate_update(u, w)
-        self.solve(b, u)
+        return (b if forcing is None else b + forcing), self._gated(u, w)
+
+    def fused_right_hand_side(self, u, w, forcing) -> tuple[torch.Tensor, torch.Tensor]:
+        r""":meth:`blocked_right_hand_side` written for ``torch.compile``: the quadrature point
+        by point with the tabulated basis values as constants, and :math:`(1 - \Delta t /
+        \tau_\mathrm{out}) M u` as its linear part (exact at this degree), so that gathers,
+        integrand and scatter fuse into one pass over the cells."""
+        dofs = self._dofs_t  # (d, cells)
+        U_cells, W_cells = u[dofs], w[dofs]  # (d, cells, B)
+        linear = (1.0 - self._k_out) / self._k_in
+        corners = [0.0] * len(dofs)
+        for q, row in enumerate(self._phi_rows):
+            U = sum(p * U_cells[d] for d, p in enumerate(row))
+            W = sum(p * W_cells[d] for d, p in enumerate(row))
+            F = self._weights[q][:, None] * (W * U * U * (1.0 - U) + linear * U)
+            corners = [corner + p * F for corner, p in zip(corners, row, strict=True)]
+        b = torch.zeros_like(u).index_add(0, dofs.reshape(-1), torch.cat(corners))
+        return (b if forcing is None else b + forcing), self._gated(u, w)
 
     def solve(self, b: torch.Tensor, x: torch.Tensor) -> None:
+        """(M + dt D K) x = b for the columns of b (n, B), into x: by fast diagonalisation on
+        a structured grid, else by CG from x (:meth:`conjugate_gradients`)."""
+        if self._grid is None:
+            self.conjugate_gradients(b, x)
+            return
+        ny, nx, B = len(self._grid.y), len(self._grid.x), b.shape[1]
+        g = self._qy_t @ b.index_select(0, self._order).view(ny, nx * B)
+        g = torch.matmul(self._qx_t, g.view(ny, nx, B)).div_(self._d)
+        g = self._qy @ torch.matmul(self._qx, g).view(ny, nx * B)
+        x.index_copy_(0, self._order, g.view(-1, B))
+
+    def conjugate_gradients(self, b: torch.Tensor, x: torch.Tensor) -> None:
         """(M + dt D K) x = b for the columns of b (n, B) by Jacobi-preconditioned CG, from
         and into x, until every column's preconditioned residual is below rtol x its right-hand
         side's. A column stops changing once it has converged, so that each replica's result

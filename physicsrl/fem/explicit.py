@@ -25,8 +25,9 @@ the old one: DOLFINx's dof order keeps the lag near the grid's side); then one g
 On one rank, when the mesh is a structured grid of square Q1 cells (the rectangles of
 ``mesh.create_rectangle``), :math:`C` is the 9-point stencil
 :math:`u_{ij} - \frac{\Delta t D}{3 h^2}\big(8 u_{ij} - \sum_{\text{8 neighbours}} u\big)`,
-with the Neumann condition as a mirror (node -1 reads node 1). :func:`structured_grid`
-detects it and checks it against the assembled rows on a random vector; :meth:`ExplicitStep.advance`
+with the Neumann condition as a mirror (node -1 reads node 1).
+:func:`~physicsrl.fem.grid.square_stencil` detects it and checks it against the assembled rows
+on a random vector; :meth:`ExplicitStep.advance`
 then permutes the state to grid order once, runs all its steps with the stencil (``ms_stencil``:
 no index arrays, no matrix values, 32 bytes per node per step) and permutes back, when it has
 at least :data:`GRID_MIN_STEPS` steps to run (the permutations cost a few passes).
@@ -42,7 +43,6 @@ one (0.032 for h = 1/30, D = 0.013: 3000 cells per side on [-50, 50]^2 run at dt
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
@@ -51,6 +51,7 @@ from dolfinx import fem, la
 from mpi4py import MPI
 
 from physicsrl.fem.errors import InvalidValue
+from physicsrl.fem.grid import square_stencil
 from physicsrl.fem.kernels import pointer
 
 
@@ -80,41 +81,6 @@ def stiffness_rows(V: fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray, np.nda
 
 GRID_MIN_STEPS = 8
 """Fewest steps per :meth:`ExplicitStep.advance` for which the structured path is taken."""
-
-
-def structured_grid(V: fem.FunctionSpace, columns, values, scale: float):
-    r"""(n, order, c) when ``V``'s owned dofs, on one rank, are the (n + 1)^2 nodes of a grid of
-    square cells whose operator rows (``columns``, ``values``: the padded rows of
-    :math:`C = I - \Delta t D M_L^{-1} K`) are the 9-point stencil with c = ``scale`` / h^2
-    (``scale`` = dt D / 3): ``order[k]`` is the dof of grid node k (row-major); else None."""
-    owned = V.dofmap.index_map.size_local
-    n = math.isqrt(owned) - 1
-    if V.mesh.comm.size > 1 or (n + 1) ** 2 != owned or n < 2 or V.dofmap.index_map_bs != 1:
-        return None
-    xy = V.tabulate_dof_coordinates()[:owned, :2]
-    low, high = xy.min(axis=0), xy.max(axis=0)
-    h = (high - low) / n
-    if not np.isclose(h[0], h[1], rtol=1e-12):
-        return None
-    node = np.rint((xy - low) / h).astype(np.int64)  # (column, row) of each dof
-    if not np.allclose(low + node * h, xy, rtol=0, atol=1e-9 * h[0]):
-        return None
-    order = np.full(owned, -1)
-    order[node[:, 1] * (n + 1) + node[:, 0]] = np.arange(owned)
-    if (order < 0).any():
-        return None
-    c = scale / h[0] ** 2
-    u = np.random.default_rng(0).random(owned)
-    grid = np.pad(u[order].reshape(n + 1, n + 1), 1, mode="reflect")
-    ring = sum(
-        grid[1 + di : n + 2 + di, 1 + dj : n + 2 + dj]
-        for di in (-1, 0, 1)
-        for dj in (-1, 0, 1)
-        if di or dj
-    )
-    stencil = grid[1:-1, 1:-1] - c * (8 * grid[1:-1, 1:-1] - ring)
-    rows = np.einsum("ij,ij->i", values, u[columns])[order].reshape(n + 1, n + 1)
-    return (n, order, c) if np.allclose(rows, stencil, rtol=0, atol=1e-12) else None
 
 
 class ExplicitStep:
@@ -156,7 +122,9 @@ class ExplicitStep:
         behind = rows - indices
         self.lag = int(behind[indices < self.owned].max(initial=0))
         self.ring = np.empty(self.lag + 1)
-        self.grid = structured_grid(V, self.columns, self.values, self.dt * D / 3)
+        self.grid = square_stencil(
+            V, lambda u: np.einsum("ij,ij->i", self.values, u[self.columns]), self.dt * D / 3
+        )
         self.constants = (
             self.dt,
             tau_in,
@@ -211,7 +179,8 @@ class ExplicitStep:
     def _advance_grid(self, steps: int) -> None:
         """``steps`` steps with the stencil, the state permuted to grid order and back."""
         start = time.perf_counter()
-        n, order, c = self.grid
+        grid, c = self.grid
+        n, order = len(grid.x) - 1, grid.order
         u, w = self.u.x.array, self.w.x.array
         grid_u, grid_w = u[order], w[order]
         current = self.current[order] if self.has_current else None
