@@ -5,8 +5,9 @@ owns its replicas on its own copy of the mesh); the time loop is then torch only
 two tensors ``u``, ``w`` of shape (B, n) (n dofs of the Lagrange degree-1 space), the applied
 current a tensor (B, c) of cell values (the DG0 dofs of :class:`MonodomainMitchellSchaeffer`'s
 ``I_app``) or ``None``. Every step is a few matrix products (or a stencil) and elementwise
-passes over all B replicas; the schemes are those of :mod:`physicsrl.fem.monodomain` (``"implicit"``, the
-report's) and :mod:`physicsrl.fem.explicit` (``"explicit"``), for the same dt and constants.
+passes over all B replicas; the schemes are those of :mod:`physicsrl.fem.monodomain`
+(``"implicit"``, the report's) and :mod:`physicsrl.fem.explicit` (``"explicit"``), for the same
+dt and constants.
 
 Implicit (the report's equations 4-5): gate by forward Euler, then solve
 
