@@ -108,7 +108,7 @@ ROWS = [
     (
         "train",
         ["env=ms", "env.model.backend=torch", "env.induction=cross_field"],
-        "model.backend=torch induces the report's arrhythmia with a fixed rest only",
+        "model.backend=torch induces the report's arrhythmia only",
     ),
     (
         "train",

@@ -100,15 +100,18 @@ def test_compiled_float32_env_follows_the_eager_float64_one():
         np.testing.assert_allclose(compiled, eager, rtol=1e-3, atol=1e-3 * np.abs(eager).max())
 
 
-@pytest.mark.parametrize("scheme", ["implicit", "explicit"])
-def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme):
+@pytest.mark.parametrize(
+    "scheme, rest", [("implicit", "6.0"), ("explicit", "6.0"), ("implicit", "[3.0,9.0]")]
+)
+def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme, rest):
     """Replica i of a batch seeded with s runs the episodes of the DOLFINx/PETSc env seeded
     with member_seed(s, i) (member i of N groups): over an episode (shock, then wait, then the
     extra waits) and the next reset, observations, rewards and flags are equal to the float32
     rounding of the observation (relative 1e-5) plus an absolute 1e-8 for the implicit scheme
-    (both CG solvers stop at rtol 1e-10; readings are up to 1e-2) and 1e-12 for the explicit
-    one (the same arithmetic in another order)."""
-    extra = (f"env.model.scheme={scheme}",)
+    (CG at rtol 1e-10 against the direct solve; readings are up to 1e-2) and 1e-12 for the
+    explicit one (the same arithmetic in another order); also with a rest drawn per reset (the
+    replicas then rest for different times)."""
+    extra = (f"env.model.scheme={scheme}", f"env.reset.rest_time={rest}")
     env = batched(2, extra=extra)
     reference = make_env(load_config("ms", "catheter", "atp", [*SMALL, *extra]), Coordinator())
     actions = ([1, 0], [0, 1])
@@ -155,7 +158,7 @@ def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme):
         (("env.model.backend=jax",), "env.model.backend must be one of petsc, torch, got 'jax'"),
         (
             ("env.model.backend=torch", "env.induction=cross_field"),
-            "model.backend=torch induces the report's arrhythmia with a fixed rest only",
+            "model.backend=torch induces the report's arrhythmia only",
         ),
     ],
 )

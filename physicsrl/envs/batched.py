@@ -146,7 +146,8 @@ class BatchedATPEnv(Members):
         return self.simulator.advance(u, w, current, self.simulator.steps(duration))
 
     def _induce(self, draws: list[tuple[float, ...]]):
-        """(u, w, finite) after the reset's induction of each draw, in one batch."""
+        """(u, w, finite) after the reset's induction of each draw (c, h, b, rest), in one
+        batch: the stimulus together, then the rests, the replicas still resting together."""
         r, sim = self.config.reset, self.simulator
         w = torch.stack([sim.nodal(half_plane_gate(c, r.w_slope)) for c, *_ in draws])
         u = torch.zeros_like(w)
@@ -156,7 +157,13 @@ class BatchedATPEnv(Members):
             )
         )
         finite = self._run(u, w, current, r.stimulus_time)
-        finite &= self._run(u, w, None, r.rest_time[0])
+        rests, done = np.array([sim.steps(rest) for *_, rest in draws]), 0
+        for steps in np.unique(rests):
+            rows = torch.as_tensor(np.flatnonzero(rests >= steps), device=u.device)
+            resting_u, resting_w = u[rows], w[rows]
+            finite[rows] &= sim.advance(resting_u, resting_w, None, int(steps) - done)
+            u[rows], w[rows] = resting_u, resting_w
+            done = int(steps)
         return u, w, finite
 
     def _start(self, replicas: list[int]) -> None:
