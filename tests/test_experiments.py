@@ -8,6 +8,9 @@ import sys
 from pathlib import Path
 from unittest import mock
 
+import pytest
+import torch
+
 from physicsrl.checkpoint import checkpoint_file, read
 from tests.conftest import ROOT, SMALL_ATP
 
@@ -64,6 +67,13 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
     assert "2 environments of 1 rank (2 ranks)" in first
     summary = json.loads((run / "summary.json").read_text())["summary"]
     assert summary["frames"] == 12 and summary["updates"] > 0
+    # experiments/store_policy.py keeps the network's weights, without the replay buffer
+    stored = tmp_path / "policy.torchrl"
+    run_script("store_policy.py", str(run), str(stored))
+    trained = checkpoint_file(run)
+    assert stored.stat().st_size < trained.stat().st_size / 10
+    weights, original = read(stored, ["q_network"]), read(trained, ["q_network"])
+    torch.testing.assert_close(weights, original, rtol=0, atol=0)
 
 
 def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
@@ -199,21 +209,28 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
     assert png.stat().st_size > 10_000
 
 
-def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path):
-    """The stored ATP policy (experiments/results/atp_agent.torchrl) on the first held-out seed, on
-    2 MPI ranks: the return, success and shocks of that seed's row in atp_agent_eval.csv (made
-    on 1 rank), so the table is reproducible and does not depend on the number of ranks."""
+@pytest.mark.parametrize(
+    "policy, table",
+    [
+        ("atp_agent.torchrl", "atp_agent_eval.csv"),
+        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv"),
+    ],
+)
+def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path, policy, table):
+    """A stored ATP policy (experiments/results/) on the first held-out seed, on 2 MPI ranks:
+    the return, success and shocks of that seed's row in its table (run 3's made on 1 rank,
+    run B's on 2), so the tables are reproducible and do not depend on the number of ranks."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
     out = tmp_path / "eval"
     command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
-    command += [f"run={results / 'atp_agent.torchrl'}", "seeds=1", "baselines=false", "gif=false"]
+    command += [f"run={results / policy}", "seeds=1", "baselines=false", "gif=false"]
     command += ["curve=false", f"hydra.run.dir={out}"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     (row,) = csv.DictReader((out / "eval.csv").open())
-    stored = next(csv.DictReader((results / "atp_agent_eval.csv").open()))
+    stored = next(csv.DictReader((results / table).open()))
     assert row["seed"] == stored["seed"]
     for key in ("return", "success", "shocks"):
         assert float(row[key]) == float(stored[key]), key

@@ -1,0 +1,39 @@
+"""Store a trained policy: a training checkpoint without its replay buffer, optimizer, loss and
+generator states (~90 kB instead of ~12 MB), which ``physicsrl-eval run=<file>`` loads.
+
+    python experiments/store_policy.py <checkpoint or run directory> <out.torchrl>
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from torchrl.checkpoint import Checkpoint, JSONCheckpointAdapter, StateDictCheckpointAdapter
+
+from physicsrl.checkpoint import State, checkpoint_file, read
+
+KEPT = {"counters": True, "extra": False, "history": False, "q_network": True}
+"""The components physicsrl-eval reads; True: a state dict, False: a JSON value."""
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", help="a checkpoint file, or a run directory (its newest)")
+    parser.add_argument("out", type=Path)
+    args = parser.parse_args()
+    source = checkpoint_file(args.run)
+    states = read(source, KEPT)
+    checkpoint = Checkpoint()
+    for name, is_state in KEPT.items():
+        if is_state:
+            state = State(lambda value=states[name]: value, None)
+            checkpoint.register(name, state, adapter=StateDictCheckpointAdapter())
+        else:
+            checkpoint.register(name, states[name], adapter=JSONCheckpointAdapter())
+    checkpoint.save(args.out, format="archive")
+    print(f"{args.out}: the policy of {source}")
+
+
+if __name__ == "__main__":
+    main()
