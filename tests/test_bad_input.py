@@ -138,6 +138,10 @@ ROWS = [
     ("bench_ms", ["grid.n=1"], "grid.n=1: must be an integer >= 2"),
     ("bench_ms", ["baseline=maybe"], "baseline=maybe: must be true or false"),
     ("bench_env", ["decisions=0"], "decisions=0: must be an integer >= 1"),
+    ("bench_groups", ["decisions=0"], "decisions=0: must be an integer >= 1"),
+    ("bench_groups", ["noop_steps=-1"], "noop_steps=-1: must be an integer >= 1"),
+    ("bench_groups", ['overrides=["env.mesh.cells=-1"]'], "env.mesh.cells must be an integer"),
+    ("bench_env", ['overrides=["env.nosuch=1"]'], "env.nosuch is not a setting of env"),
     # -m sweeps: every job, before any starts
     ("train", ["-m", "iterations=-5,3"], "iterations must be an integer >= 1, got -5 (sweep job 1"),
     ("train", ["-m", "iterations=3,-5"], "got -5 (sweep job 2 of 2: iterations=-5)"),
@@ -158,10 +162,7 @@ def check_of(command: str):
         return train.check_task
     if command == "eval":
         return evaluate.check
-    import importlib
-
-    settings = importlib.import_module(f"physicsrl.bench.{command[6:]}").SETTINGS
-    return lambda cfg: bench.check_settings(cfg, settings)
+    return lambda cfg: bench.check(cfg, command[6:])
 
 
 @pytest.fixture(scope="module")

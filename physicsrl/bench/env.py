@@ -35,13 +35,6 @@ from physicsrl.envs import load_config, make_env
 from physicsrl.envs.baselines import Schedule
 
 FIXED_LENGTH = ["env.success_threshold=-1e30", "env.extra_waits=0", "env.snapshots.capacity=0"]
-SETTINGS = {
-    "seed": (int, 0),
-    "decisions": (int, 1),
-    "shock_every": (int, 1),
-    "baseline": (bool, None),
-    "baseline_decisions": (int, 1),
-}
 
 
 class _Timed:

@@ -44,12 +44,6 @@ from physicsrl.fem.monodomain import SCHEMES
 DT = 0.03
 EXTENT = 50.0
 STIMULUS_STEPS = 30
-SETTINGS = {
-    "grid.n": (int, 2),
-    "steps": (int, 1),
-    "steps_per_call": (int, 1),
-    "baseline": (bool, None),
-}
 PHASES = ("solve", "rhs", "ionic", "explicit", "ghosts")
 
 

@@ -27,7 +27,6 @@ from physicsrl.coordinated import Coordinated, Coordinator, parallel
 SMALL_ARGUMENT = (1.5, (1, 2))
 IDLE = "idle follower CPU (fraction of a core)"
 WATCHDOG_S = 600.0  # long enough never to fire: only its cost is measured
-SETTINGS = {"calls": (int, 1), "repeats": (int, 1), "idle_seconds": (float, 0.0)}
 
 
 class PingEnvironment(Coordinated):

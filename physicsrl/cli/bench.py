@@ -1,10 +1,11 @@
 """``physicsrl-bench NAME [overrides]``: the benchmarks, beside their baselines, as tables.
 
 Each benchmark ``NAME`` is the module ``physicsrl.bench.NAME`` (``run(cfg) -> rows``, and
-optionally ``goals(rows)`` and ``SETTINGS``, the type and least value of each setting, checked
-with the config's keys before any work, for every job of a ``-m`` sweep) with the config
-``conf/bench_NAME.yaml``. The leader prints the table and the goals and writes ``NAME.csv`` and
-``NAME.json`` (with the command line) into the run directory.
+optionally ``goals(rows)``) with the config ``conf/bench_NAME.yaml``, whose settings are
+checked against ``physicsrl.bench.SETTINGS[NAME]`` (type and least value) before any work and
+before the module is imported, for every job of a ``-m`` sweep. The leader prints the table
+and the goals and writes ``NAME.csv`` and ``NAME.json`` (with the command line) into the run
+directory.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import math
 import shlex
 import sys
 
+from physicsrl.bench import SETTINGS
 from physicsrl.launch import output_dir, relaunch, run_hydra
 
 BENCHMARKS = {
@@ -57,6 +59,19 @@ def check_settings(cfg, settings: dict[str, tuple[type, float | None]]) -> None:
             raise ValueError(f"{key}={value}: must be {what}{bound}")
 
 
+def check(cfg, name: str) -> None:
+    """:func:`check_settings` of benchmark ``name``, and the ATP task it builds from its
+    ``overrides`` (benchmarks env and groups), as ``make_env`` will read it; nothing is built."""
+    check_settings(cfg, SETTINGS[name])
+    if "overrides" in cfg:
+        from physicsrl.checks import build, plain
+        from physicsrl.envs import TASKS, load_config
+
+        groups = plain(load_config("ms", "catheter", "atp", list(cfg.overrides)))
+        task, settings = TASKS.lookup(groups["env"])
+        build(task.Config, settings, "env")
+
+
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
     """Print the table and goals, and write them beside the command line (leader only)."""
     print(format_table(rows))
@@ -85,9 +100,8 @@ def main() -> None:
     relaunch(overrides)
     from physicsrl.cli.command import validate_or_exit
 
+    validate_or_exit(f"bench_{name}", overrides, lambda cfg: check(cfg, name))
     module = importlib.import_module(f"physicsrl.bench.{name}")
-    settings = getattr(module, "SETTINGS", {})
-    validate_or_exit(f"bench_{name}", overrides, lambda cfg: check_settings(cfg, settings))
 
     def task(cfg) -> None:
         from mpi4py import MPI

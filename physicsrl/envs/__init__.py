@@ -5,8 +5,8 @@ Tasks: ``heat`` (:class:`HeatTask`), ``atp`` (:class:`ATPTask`); observations: `
 ``catheter``; rewards: ``heat_stop``, ``atp``. See :mod:`physicsrl.envs.task` for the design.
 
 The tasks, configs and registries import without torch, so that the commands check a task's
-settings in about a second; the TorchRL side (:class:`PhysicsEnv`, :func:`make_env`,
-:func:`load_config`) is imported on first use.
+settings in about a second; the TorchRL side (:class:`PhysicsEnv`, :func:`make_env`) is
+imported on first use.
 """
 
 import importlib
@@ -15,6 +15,7 @@ import physicsrl.fem  # noqa: F401 (first: makes MPI and PETSc loadable for dolf
 from physicsrl.envs.atp import ATPConfig, ATPTask
 from physicsrl.envs.heat import HeatConfig, HeatOptimum, HeatTask, exact_optimum
 from physicsrl.envs.observations import OBSERVATIONS, Catheter, Observation, Quadrants
+from physicsrl.envs.registry import load_config
 from physicsrl.envs.rewards import REWARDS, ATPReward, HeatStop, Reward
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
 
@@ -42,7 +43,7 @@ __all__ = [
     "make_env",
 ]
 
-_TORCH_SIDE = {"PhysicsEnv": "env", "load_config": "factory", "make_env": "factory"}
+_TORCH_SIDE = {"PhysicsEnv": "env", "make_env": "factory"}
 
 
 def __getattr__(name: str):

@@ -26,7 +26,6 @@ from physicsrl.checks import build, plain
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs.env import PhysicsEnv
 from physicsrl.envs.observations import OBSERVATIONS
-from physicsrl.envs.registry import shipped
 from physicsrl.envs.rewards import REWARDS
 from physicsrl.envs.task import TASKS
 from physicsrl.launch import check_backend
@@ -53,23 +52,3 @@ def make_env(cfg: Mapping | Any, coordinator: Coordinator) -> EnvBase:
         return BatchedATPEnv(config, observation, reward, seed=cfg.get("seed"))
     task = task_class(coordinator, config, observation)
     return PhysicsEnv(task, reward, seed=cfg.get("seed"))
-
-
-def load_config(
-    env: str = "heat",
-    observation: str = "quadrants",
-    reward: str = "heat_stop",
-    overrides: tuple[str, ...] | list[str] = (),
-    seed: int | None = None,
-):
-    """The config of ``make_env`` from the shipped YAML files (``physicsrl.conf``), without
-    Hydra: ``overrides`` are dotted ``key=value`` strings, e.g. ``"env.mesh.cells=20"``.
-
-    For scripts, tests and examples; Hydra commands compose the same groups themselves.
-    """
-    from omegaconf import OmegaConf
-
-    groups = {"env": env, "observation": observation, "reward": reward}
-    cfg = OmegaConf.create({g: OmegaConf.load(shipped(g, n)) for g, n in groups.items()})
-    cfg.seed = seed
-    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))

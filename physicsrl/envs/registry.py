@@ -6,6 +6,9 @@ the YAML are the class's config fields (see :func:`physicsrl.checks.build`). A c
 outside the package is found through the YAML's ``module`` key: a module name
 (``mylab.tasks``) or a ``.py`` file (relative to the working directory) imported, once, before
 the name is looked up (``examples/thermostat.py`` and its YAML in ``examples/conf/``).
+
+:func:`shipped` finds the shipped YAML files and :func:`load_config` composes them without
+Hydra (torch-free, like the registries: the commands check settings before importing torch).
 """
 
 from __future__ import annotations
@@ -77,3 +80,23 @@ def shipped(group: str, option: str) -> str:
                 raise FileNotFoundError(f"no config {group}/{option}.yaml in {root}")
             return str(path)
     raise FileNotFoundError("the physicsrl configs (conf/env/heat.yaml) are not installed")
+
+
+def load_config(
+    env: str = "heat",
+    observation: str = "quadrants",
+    reward: str = "heat_stop",
+    overrides: tuple[str, ...] | list[str] = (),
+    seed: int | None = None,
+):
+    """The config of ``make_env`` from the shipped YAML files (``physicsrl.conf``), without
+    Hydra: ``overrides`` are dotted ``key=value`` strings, e.g. ``"env.mesh.cells=20"``.
+
+    For scripts, tests and examples; Hydra commands compose the same groups themselves.
+    """
+    from omegaconf import OmegaConf
+
+    groups = {"env": env, "observation": observation, "reward": reward}
+    cfg = OmegaConf.create({g: OmegaConf.load(shipped(g, n)) for g, n in groups.items()})
+    cfg.seed = seed
+    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
