@@ -143,12 +143,14 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     coordinator = task.coordinator if isinstance(task, Task) else None  # its time is logged
     ranks, per_env = MPI.COMM_WORLD.size, config.mpi.ranks_per_env
     log_dir = run_dir if resume is None else resume.parent.parent
+    groups, n = ranks // per_env, n_environments(env)
+    plural = lambda count: "s" if count > 1 else ""  # noqa: E731
+    layout = f"{groups} environment{plural(groups)} of {per_env} rank{plural(per_env)}"
+    if n != groups:  # replicas: a group is a batch of them
+        layout = f"{n} environments ({groups} group{plural(groups)} of {n // groups} replicas)"
     log.info(
-        "%d environment%s of %d rank%s (%d ranks); run directory %s; training to iteration %d",
-        ranks // per_env,
-        "s" if ranks // per_env > 1 else "",
-        per_env,
-        "s" if per_env > 1 else "",
+        "%s (%d ranks); run directory %s; training to iteration %d",
+        layout,
         ranks,
         log_dir,
         config.iterations,

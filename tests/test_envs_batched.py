@@ -218,6 +218,9 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
         assert result.returncode == 0, result.stdout + result.stderr
         summary = json.loads((runs[name] / "summary.json").read_text())["summary"]
         assert summary["environments"] == 4 and summary["frames"] == 4 * 2 * 4
+        groups = 4 // replicas
+        layout = f"4 environments ({groups} group{'s' * (groups > 1)} of {replicas} replicas)"
+        assert layout in (runs[name] / "train.log").read_text()
     keys = ("iteration", "frames", "success", "shocks")
     assert_same_rows(
         table(runs["one_rank"] / "eval.csv"), table(runs["two_ranks"] / "eval.csv"), keys
