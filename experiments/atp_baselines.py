@@ -7,7 +7,9 @@
 
 The env is the training preset's (``physicsrl-train +experiment=EXPERIMENT``), composed by
 Hydra exactly as the training run composes it, and built as the run builds it: W ranks run
-W / ``mpi.ranks_per_env`` environments, which share the seeds (same rows as one).
+W / ``mpi.ranks_per_env`` environments (times ``env.replicas`` on the torch backend), which
+share the episodes (same rows as one): with N environments and K seeds, N / K policies run
+together, each environment taking the next episode as soon as its own ends.
 
 Policies (default): never shock, always shock, random (p = 0.5), shock every 4th decision, and
 the best single shock: the decision of the one shock (or none) is chosen by mean return on the
@@ -43,7 +45,8 @@ from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import atp_baselines, decisions, open_loop_schedules
 from physicsrl.envs.groups import environments
-from physicsrl.evaluation import mean_metrics, run_episodes, write_csv
+from physicsrl.evaluation import compare, mean_metrics, write_csv
+from physicsrl.training import n_environments
 
 POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order
 
@@ -88,16 +91,18 @@ def main() -> None:
             record.write_text(record.read_text() + call)
         else:
             record.write_text(f"settings {json.dumps(settings)}\n{call}")
-        per_seed, means = [], []
-        for policy_name, policy in policies.items():
-            rows = done.get(policy_name) or [
-                {"policy": policy_name, **row}
-                for row in run_episodes(env, policy, seeds, env.task.action_counts)
-            ]
-            per_seed += rows
-            means.append({"policy": policy_name, **rounded(mean_metrics(rows))})
-            print(means[-1], flush=True)
+        todo = [policy for policy in policies if policy not in done]
+        together = max(1, n_environments(env) // len(seeds))  # policies sharing the members
+        for start in range(0, len(todo), together):
+            chunk = {policy: policies[policy] for policy in todo[start : start + together]}
+            rows, _ = compare(env, chunk, seeds, env.task.action_counts)
+            for policy in chunk:
+                done[policy] = [row for row in rows if row["policy"] == policy]
+                print({"policy": policy, **rounded(mean_metrics(done[policy]))}, flush=True)
+            per_seed = [row for policy in policies if policy in done for row in done[policy]]
             write_csv(args.out / f"{name}_per_seed.csv", per_seed)
+        means = [{"policy": p, **rounded(mean_metrics(done[p]))} for p in policies]
+        write_csv(args.out / f"{name}_per_seed.csv", [r for p in policies for r in done[p]])
         write_csv(args.out / f"{name}.csv", means)
         if args.open_loop:
             best = max(means, key=lambda row: row["return"])

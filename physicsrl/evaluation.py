@@ -73,17 +73,24 @@ def run_episode(
 def run_episodes(
     env: EnvBase, policy: Callable, seeds: Iterable[int], action_counts: Mapping[str, int] = ()
 ) -> list[dict]:
-    """:func:`run_episode` for each seed; the members of a batch
-    (:class:`~physicsrl.envs.members.Members`: groups, replicas) share the seeds (K seeds on N
-    members take about K / N episode times) and give the same rows."""
-    seeds = [int(s) for s in seeds]
+    """:func:`run_episode` for each seed (:func:`run_jobs` of ``policy`` on each)."""
+    return run_jobs(env, [(policy, int(s)) for s in seeds], action_counts)
+
+
+def run_jobs(
+    env: EnvBase, jobs: Iterable[tuple[Callable, int]], action_counts: Mapping[str, int] = ()
+) -> list[dict]:
+    """:func:`run_episode` for each ``(policy, seed)`` of ``jobs``; the members of a batch
+    (:class:`~physicsrl.envs.members.Members`: groups, replicas) share the jobs (K episodes on
+    N members take about K / N episode times) and give the same rows."""
+    jobs = [(policy, int(seed)) for policy, seed in jobs]
     if not isinstance(env, Members):
-        return [run_episode(env, policy, s, action_counts) for s in seeds]
+        return [run_episode(env, policy, seed, action_counts) for policy, seed in jobs]
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollouts = spread_episodes(env, policy, seeds, MAX_STEPS)
+        rollouts = spread_episodes(env, jobs, MAX_STEPS)
     return [
-        {"seed": s, **episode_metrics(r, action_counts)}
-        for s, r in zip(seeds, rollouts, strict=True)
+        {"seed": seed, **episode_metrics(rollout, action_counts)}
+        for (_, seed), rollout in zip(jobs, rollouts, strict=True)
     ]
 
 
@@ -101,14 +108,17 @@ def compare(
     seeds: Iterable[int],
     action_counts: Mapping[str, int] = (),
 ) -> tuple[list[dict], list[dict]]:
-    """One episode of each policy per seed: the rows per seed and the mean row per policy
-    (both with a ``policy`` column holding the display name)."""
-    seeds = list(seeds)
-    per_seed, means = [], []
-    for name, policy in policies.items():
-        rows = [{"policy": name, **row} for row in run_episodes(env, policy, seeds, action_counts)]
-        per_seed.extend(rows)
-        means.append({"policy": name, **mean_metrics(rows)})
+    """One episode of each policy per seed, all in one :func:`run_jobs` (the policies share
+    a batch's members): the rows per seed and the mean row per policy (both with a ``policy``
+    column holding the display name)."""
+    seeds = [int(s) for s in seeds]
+    names = [name for name in policies for _ in seeds]
+    rows = run_jobs(env, [(policies[name], s) for name in policies for s in seeds], action_counts)
+    per_seed = [{"policy": name, **row} for name, row in zip(names, rows, strict=True)]
+    means = [
+        {"policy": name, **mean_metrics(r for r in per_seed if r["policy"] == name)}
+        for name in policies
+    ]
     return per_seed, means
 
 

@@ -22,8 +22,10 @@ from torchrl.envs.utils import check_env_specs
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import load_config, make_env
+from physicsrl.envs.baselines import Constant, EveryKth
 from physicsrl.envs.batched import BatchedATPEnv
 from physicsrl.envs.members import member_seed
+from physicsrl.evaluation import compare, run_episode
 from tests.conftest import MPIEXEC
 
 # A small, short ATP task: 16 x 16 cells, induction 9 time units, decisions of 3.
@@ -136,6 +138,30 @@ def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme, rest):
             np.testing.assert_allclose(
                 again["observation"][i], reference.reset()["observation"], **tolerance
             )
+
+
+def test_policies_share_the_replicas_and_each_episode_is_its_own():
+    """``compare`` of 2 policies on 3 seeds over 4 replicas (6 episodes: a replica takes the
+    next one as soon as its own ends, in the middle of the others'): each row equals the
+    episode of that policy and seed on the PETSc task alone (returns to 1e-4)."""
+    policies = {"never": Constant(0), "every 2": EveryKth(2, 0)}
+    seeds = [1000000000, 1000000001, 1000000002]
+    task = ("env.max_decisions=5", "env.success_threshold=230.0", "env.model.scheme=explicit")
+    rows, means = compare(batched(4, extra=task), policies, seeds, {"shocks": 1})
+    assert len({row["length"] for row in rows}) > 1  # episodes end at different times
+    coordinator = Coordinator()
+    alone = make_env(load_config("ms", "catheter", "atp", [*SMALL, *task]), coordinator)
+    with coordinator:
+        expected = [
+            {"policy": name, **run_episode(alone, policy, s, {"shocks": 1})}
+            for name, policy in policies.items()
+            for s in seeds
+        ]
+    assert [m["policy"] for m in means] == list(policies)
+    assert [(r["policy"], r["seed"]) for r in rows] == [(e["policy"], e["seed"]) for e in expected]
+    for row, reference in zip(rows, expected, strict=True):
+        assert row["return"] == pytest.approx(reference["return"], abs=1e-4)
+        assert (row["length"], row["shocks"]) == (reference["length"], reference["shocks"])
 
 
 @pytest.mark.parametrize(

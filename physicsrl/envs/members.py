@@ -12,7 +12,7 @@ Members are seeded, reset and stepped alone or together (:meth:`Members.seed_eac
 :meth:`~Members.reset_some`, :meth:`~Members.step_some`, values as numpy arrays per member);
 TorchRL's ``reset`` (with its ``"_reset"`` mask) and ``step`` go through them, so the
 ``Collector`` and ``step_and_maybe_reset`` work unchanged. :func:`spread_episodes` runs
-evaluation episodes, one seed per member at a time.
+evaluation episodes (a policy and a seed each) on the members as they come free.
 """
 
 from __future__ import annotations
@@ -107,32 +107,42 @@ def _tensordict(leaves: dict) -> TensorDict:
 
 
 def spread_episodes(
-    env: Members, policy: Callable, seeds: Sequence[int], max_steps: int
+    env: Members, jobs: Sequence[tuple[Callable, int]], max_steps: int
 ) -> list[TensorDict]:
-    """One episode per seed, spread over the members (K seeds take about K / N episode
-    times): member i runs seeds i, i + N, ...; each episode is the unbatched rollout its
-    member would produce alone (a stack of steps with ``"next"``), in the order of ``seeds``."""
-    n = env.batch_size[0]
-    episodes: list[TensorDict | None] = [None] * len(seeds)
-    for start in range(0, len(seeds), n):
-        chunk = list(seeds[start : start + n])
-        members = list(range(len(chunk)))
-        env.seed_each(chunk, members)
-        current = {i: _tensordict(v) for i, v in env.reset_some(members).items()}
-        steps: dict[int, list[TensorDict]] = {i: [] for i in members}
-        for _ in range(max_steps):
-            if not current:
-                break
-            actions = {i: int(policy(td.clone())["action"]) for i, td in current.items()}
-            following = {i: _tensordict(v) for i, v in env.step_some(actions).items()}
-            for i, td in following.items():
-                step = current[i].clone()
-                step["action"] = torch.as_tensor(actions[i])
-                step["next"] = td
-                steps[i].append(step)
-            current = {
-                i: td.exclude("reward") for i, td in following.items() if not bool(td["done"])
-            }
-        for i in members:
-            episodes[start + i] = torch.stack(steps[i])
+    """One episode per job ``(policy, seed)``, spread over the members: each member takes the
+    next job as soon as its episode ends (K jobs on N members take about K / N episode times;
+    several policies can share the batch). Each episode is the unbatched rollout its member
+    would produce alone (a stack of at most ``max_steps`` steps with ``"next"``), returned in
+    the order of ``jobs``."""
+    queue = list(enumerate(jobs))[::-1]  # popped from the end: in order
+    episodes: list[TensorDict | None] = [None] * len(jobs)
+    running: dict[int, tuple[int, Callable, list[TensorDict]]] = {}  # member -> job, its steps
+    current: dict[int, TensorDict] = {}  # member -> the tensordict its policy reads next
+
+    def start(members: Sequence[int]) -> None:
+        taken = [(i, queue.pop()) for i in members if queue]  # until the queue is empty
+        if taken:
+            env.seed_each([seed for _, (_, (_, seed)) in taken], [i for i, _ in taken])
+            starts = env.reset_some([i for i, _ in taken])
+            for i, (k, (policy, _)) in taken:
+                running[i], current[i] = (k, policy, []), _tensordict(starts[i])
+
+    start(range(env.batch_size[0]))
+    while running:
+        actions = {i: int(running[i][1](td.clone())["action"]) for i, td in current.items()}
+        ended = []
+        for i, leaves in env.step_some(actions).items():
+            k, _, steps = running[i]
+            following = _tensordict(leaves)
+            step = current[i].clone()
+            step["action"] = torch.as_tensor(actions[i])
+            step["next"] = following
+            steps.append(step)
+            if bool(following["done"]) or len(steps) >= max_steps:
+                episodes[k] = torch.stack(steps)
+                ended.append(i)
+                del running[i], current[i]
+            else:
+                current[i] = following.exclude("reward")
+        start(ended)
     return episodes

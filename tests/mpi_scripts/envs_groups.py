@@ -54,7 +54,9 @@ with abort_on_error():
             with torch.no_grad():
                 batched = columns(env.rollout(STEPS, policy, break_when_any_done=False))
             evaluated = (
-                [episode(r) for r in spread_episodes(env, policy, EVAL_SEEDS, 10)] if n > 1 else []
+                [episode(r) for r in spread_episodes(env, [(policy, s) for s in EVAL_SEEDS], 10)]
+                if n > 1
+                else []
             )
             vector_rewards = []
             if n > 1:
