@@ -51,7 +51,7 @@ def test_atp_presets_compose_with_the_report_figures():
     assert "iterations: 500" in wide and "n_steps: 8" in wide  # the rest from the atp preset
     batched = compose("+experiment=atp_timing_batched")
     assert "rest_time:\n    - 85.0\n    - 315.0" in batched  # the timing preset's ...
-    assert "backend: torch" in batched and "replicas: 8" in batched  # ... on torch replicas
+    assert "backend: torch" in batched and "replicas: 32" in batched  # ... on torch replicas
 
 
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
