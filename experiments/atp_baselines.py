@@ -2,7 +2,8 @@
 
     python experiments/atp_baselines.py [--experiment atp] [--seeds 20] [--open-loop]
                                         [--select-seeds 5] [--single-shock K]
-                                        [--policies NAME,...] [--resume] [key=value ...]
+                                        [--policies NAME,...] [--schedules NAME,...]
+                                        [--resume] [key=value ...]
     mpiexec -n 2 python experiments/atp_baselines.py ...   # 2 environments share the seeds
 
 The env is the training preset's (``physicsrl-train +experiment=EXPERIMENT``), composed by
@@ -15,7 +16,8 @@ Policies (default): never shock, always shock, random (p = 0.5), shock every 4th
 the best single shock: the decision of the one shock (or none) is chosen by mean return on the
 first ``--select-seeds`` seeds (every decision tried), then evaluated on all seeds;
 ``--single-shock K`` fixes the decision instead (:func:`~physicsrl.envs.baselines.atp_baselines`).
-``--policies`` keeps only the named ones (never,always,random,every4,single).
+``--policies`` keeps only the named ones (never,always,random,every4,single), ``--schedules``
+the named open-loop schedules (comma-separated display names).
 
 ``--open-loop`` evaluates instead every open-loop schedule on all seeds
 (:func:`~physicsrl.envs.baselines.open_loop_schedules`: never, always, one shock at each
@@ -59,6 +61,7 @@ def main() -> None:
     parser.add_argument("--select-seeds", type=int, default=5)
     parser.add_argument("--single-shock", type=int, help="the single shock's decision (no search)")
     parser.add_argument("--policies", default=",".join(POLICIES))
+    parser.add_argument("--schedules", help="--open-loop: only these, e.g. 'single shock at 0'")
     parser.add_argument("--resume", action="store_true", help="keep the policies already done")
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
@@ -78,6 +81,11 @@ def main() -> None:
         done = previous_rows(args.out / name, settings) if args.resume else {}
         if args.open_loop:
             policies = open_loop_schedules(decisions(env))
+            if args.schedules:
+                names = args.schedules.split(",")
+                if set(names) - set(policies):
+                    raise SystemExit(f"--schedules: unknown {sorted(set(names) - set(policies))}")
+                policies = {name: policies[name] for name in names}
         else:
             single = args.single_shock if "single" in keep else 0  # 0: no search when unused
             policies = atp_baselines(env, seeds[: args.select_seeds], single_shock=single)

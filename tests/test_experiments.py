@@ -237,3 +237,32 @@ def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path, poli
     assert row["seed"] == stored["seed"]
     for key in ("return", "success", "shocks"):
         assert float(row[key]) == float(stored[key]), key
+
+
+def test_timing_bar_reproduces_its_rows_on_two_ranks(tmp_path):
+    """The timing variant's bar (experiments/results/atp_timing_open_loop_per_seed.csv, 2 ranks x
+    460 replicas): its best schedule on the first two held-out seeds, recomputed on 2 ranks of
+    one replica each, gives the table's rows (return, length, success, shocks)."""
+    from tests.conftest import MPIEXEC
+
+    results = ROOT / "experiments" / "results"
+    command = [
+        str(MPIEXEC),
+        "-n",
+        "2",
+        sys.executable,
+        str(ROOT / "experiments" / "atp_baselines.py"),
+    ]
+    command += ["--experiment", "atp_timing", "--open-loop", "--seeds", "2", "--out", str(tmp_path)]
+    command += ["--schedules", "single shock at 0", "env.model.backend=torch", "env.replicas=1"]
+    command += ["env.model.compile=true", "env.model.dtype=float32"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    rows = list(csv.DictReader((tmp_path / "atp_timing_open_loop_per_seed.csv").open()))
+    stored = [
+        row
+        for row in csv.DictReader((results / "atp_timing_open_loop_per_seed.csv").open())
+        if row["policy"] == "single shock at 0"
+    ][:2]
+    keys = ("policy", "seed", "return", "length", "success", "shocks")
+    assert [[row[k] for k in keys] for row in rows] == [[row[k] for k in keys] for row in stored]
