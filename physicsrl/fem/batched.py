@@ -196,7 +196,7 @@ class BatchedMonodomain:
         h = self.dt / substeps  # the (sub-)step
         self._gate = (u_gate, 1.0 - h / tau_open, h / tau_open, 1.0 - h / tau_close)
         self._k_in, self._k_out = h / tau_in, h / tau_out
-        compile = torch.compile if compiled else lambda step: step
+        fuse = torch.compile if compiled else lambda step: step
         if scheme == "explicit":
             m = lumped_mass(V)
             row_sums = np.asarray(abs(stiffness).sum(axis=1)).ravel()
@@ -213,10 +213,10 @@ class BatchedMonodomain:
             square = square_stencil(V, C.__matmul__, h * D / 3)
             if square is None:
                 self._grid, self._C = None, _sparse(C, self.device, self.dtype)
-                self._step = compile(self._explicit_step)
+                self._step = fuse(self._explicit_step)
             else:
                 self._grid, self._c = square
-                self._step = compile(self._stencil_step)
+                self._step = fuse(self._stencil_step)
             self._order = (
                 None if self._grid is None else torch.tensor(self._grid.order, device=self.device)
             )
@@ -248,7 +248,7 @@ class BatchedMonodomain:
         self._phi_rows = quadrature.phi.tolist()
         # values per block of the reaction: one block on a GPU; ~1 MB work arrays on a CPU
         self.block_values = 2**62 if self.device.type == "cuda" else 2**17
-        self._right_hand_side = compile(
+        self._right_hand_side = fuse(
             self.fused_right_hand_side if compiled else self.blocked_right_hand_side
         )
 
