@@ -217,9 +217,9 @@ class BatchedMonodomain:
             else:
                 self._grid, self._c = square
                 self._step = fuse(self._stencil_step)
-            self._order = (
-                None if self._grid is None else torch.tensor(self._grid.order, device=self.device)
-            )
+            if self._grid is not None:  # grid order and back, as gathers (index_put is slow)
+                self._order = torch.tensor(self._grid.order, device=self.device)
+                self._dof_order = torch.argsort(self._order)
             return
         A = mass + self.dt * D * stiffness
         self._grid = grid_of(V, mass, stiffness)
@@ -279,12 +279,15 @@ class BatchedMonodomain:
             forcing = None if current is None else self._current @ current.T.to(self.dtype)
             if self.scheme == "explicit" and self._grid is not None:
                 side = (len(u), len(self._grid.y), len(self._grid.x))
-                U, W = u[:, self._order].view(side), w[:, self._order].view(side)
+                U, W = (x.index_select(1, self._order).view(side) for x in (u, w))
                 if forcing is not None:
-                    forcing = forcing.T[:, self._order].view(side)
+                    forcing = forcing.T.index_select(1, self._order).view(side)
+                other = torch.empty_like(U)  # the next u: two buffers, no allocation per step
                 for _ in range(steps * self.substeps):
-                    U, W = self._step(U, W, forcing)
-                u[:, self._order], w[:, self._order] = U.view(len(u), -1), W.view(len(u), -1)
+                    self._step(U, W, forcing, other)
+                    U, other = other, U
+                for x, grid in ((u, U), (w, W)):
+                    x.copy_(grid.view(len(u), -1).index_select(1, self._dof_order))
                 return torch.isfinite(u).all(dim=1)
             U, W = u.T.contiguous(), w.T.contiguous()
             for _ in range(steps * self.substeps):
@@ -324,9 +327,11 @@ class BatchedMonodomain:
         new = self._C @ u + self._nodal_reaction(u, w)
         return (new if forcing is None else new + forcing), self._gated(u, w)
 
-    def _stencil_step(self, u, w, forcing):
-        """(u^{n+1}, w^{n+1}) of the explicit scheme on square cells, u and w (B, n_y, n_x):
-        the 9-point stencil of :mod:`physicsrl.fem.grid`, the Neumann condition a mirror."""
+    def _stencil_step(self, u, w, forcing, out) -> None:
+        """u^{n+1} into ``out`` and w^{n+1} into ``w`` (in place) of the explicit scheme on
+        square cells, u, w and out (B, n_y, n_x): the 9-point stencil of
+        :mod:`physicsrl.fem.grid`, the Neumann condition a mirror. Writing into buffers matters
+        at 1M nodes: a new 8 MB array per step costs more than the step (fresh pages)."""
         padded = torch.nn.functional.pad(u, (1, 1, 1, 1), mode="reflect")
         ny, nx = u.shape[1:]
         ring = sum(
@@ -336,7 +341,8 @@ class BatchedMonodomain:
             if di or dj
         )
         new = u - self._c * (8.0 * u - ring) + self._nodal_reaction(u, w)
-        return (new if forcing is None else new + forcing), self._gated(u, w)
+        out.copy_(new if forcing is None else new + forcing)
+        w.copy_(self._gated(u, w))
 
     def reaction(self, u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         r"""(n, B): :math:`\frac{\Delta t}{\tau_\mathrm{in}} \int w u^2 (1 - u) \phi_i dx`
