@@ -110,7 +110,6 @@ def main() -> None:
             per_seed = [row for policy in policies if policy in done for row in done[policy]]
             write_csv(args.out / f"{name}_per_seed.csv", per_seed)
         means = [{"policy": p, **rounded(mean_metrics(done[p]))} for p in policies]
-        write_csv(args.out / f"{name}_per_seed.csv", [r for p in policies for r in done[p]])
         write_csv(args.out / f"{name}.csv", means)
         if args.open_loop:
             best = max(means, key=lambda row: row["return"])

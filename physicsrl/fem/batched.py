@@ -212,26 +212,24 @@ class BatchedMonodomain:
             self._current = _sparse(h * inverse @ current, self.device, self.dtype)
             square = square_stencil(V, C.__matmul__, h * D / 3)
             if square is None:
-                self._grid, self._C = None, _sparse(C, self.device, self.dtype)
+                self._use_grid(None)
+                self._C = _sparse(C, self.device, self.dtype)
                 self._step = fuse(self._explicit_step)
             else:
-                self._grid, self._c = square
+                self._use_grid(square[0])
+                self._c = square[1]
                 self._step = fuse(self._stencil_step)
-            if self._grid is not None:  # grid order and back, as gathers (index_put is slow)
-                self._order = torch.tensor(self._grid.order, device=self.device)
-                self._dof_order = torch.argsort(self._order)
             return
         A = mass + self.dt * D * stiffness
-        self._grid = grid_of(V, mass, stiffness)
-        self._order = None
-        if self._grid is not None:
+        self._use_grid(grid_of(V, mass, stiffness))
+        if self._grid is None:
+            self._A = _sparse(A, self.device, self.dtype)
+            self._inverse_diagonal = self.tensor(1.0 / A.diagonal())[:, None]
+        else:
             qx, qy, d = self._grid.fast_diagonalisation(self.dt * D)
-            self._order = torch.tensor(self._grid.order, device=self.device)
             self._qx, self._qy = self.tensor(qx), self.tensor(qy)
             self._qx_t, self._qy_t = self._qx.T.contiguous(), self._qy.T.contiguous()
             self._d = self.tensor(d)[:, :, None]
-        self._A = _sparse(A, self.device, self.dtype)
-        self._inverse_diagonal = self.tensor(1.0 / A.diagonal())[:, None]
         self._M = _sparse(mass, self.device, self.dtype)
         self._current = _sparse(self.dt * current, self.device, self.dtype)
         self.rtol = max(float(rtol), 100 * torch.finfo(self.dtype).eps)
@@ -251,6 +249,15 @@ class BatchedMonodomain:
         self._right_hand_side = fuse(
             self.fused_right_hand_side if compiled else self.blocked_right_hand_side
         )
+
+    def _use_grid(self, grid) -> None:
+        """Keep ``grid`` (a :class:`~physicsrl.fem.grid.Grid` or None) and its permutations:
+        ``_order`` takes dof-ordered rows to grid order, ``_dof_order`` back (both gathers:
+        scattering with an index is several times slower on the CPU)."""
+        self._grid = grid
+        if grid is not None:
+            self._order = torch.tensor(grid.order, device=self.device)
+            self._dof_order = torch.argsort(self._order)
 
     # state --------------------------------------------------------------------------------
     def nodal(self, f) -> torch.Tensor:
@@ -277,27 +284,29 @@ class BatchedMonodomain:
         B values), or, for the explicit stencil, (B, n_y, n_x) grids."""
         with self._threads():
             forcing = None if current is None else self._current @ current.T.to(self.dtype)
-            if self.scheme == "explicit" and self._grid is not None:
+            stencil = self.scheme == "explicit" and self._grid is not None
+            if stencil:
                 side = (len(u), len(self._grid.y), len(self._grid.x))
                 U, W = (x.index_select(1, self._order).view(side) for x in (u, w))
                 if forcing is not None:
                     forcing = forcing.T.index_select(1, self._order).view(side)
+            else:
+                U, W = u.T.contiguous(), w.T.contiguous()
+            if self.scheme == "explicit":
                 other = torch.empty_like(U)  # the next u: two buffers, no allocation per step
                 for _ in range(steps * self.substeps):
                     self._step(U, W, forcing, other)
                     U, other = other, U
-                for x, grid in ((u, U), (w, W)):
-                    x.copy_(grid.view(len(u), -1).index_select(1, self._dof_order))
-                return torch.isfinite(u).all(dim=1)
-            U, W = u.T.contiguous(), w.T.contiguous()
-            for _ in range(steps * self.substeps):
-                if self.scheme == "explicit":
-                    U, W = self._step(U, W, forcing)
-                else:
+            else:
+                for _ in range(steps):
                     b, W = self._right_hand_side(U, W, forcing)
                     self.solve(b, U)
-            u.copy_(U.T)
-            w.copy_(W.T)
+            if stencil:
+                for x, grid in ((u, U), (w, W)):
+                    x.copy_(grid.view(len(u), -1).index_select(1, self._dof_order))
+            else:
+                u.copy_(U.T)
+                w.copy_(W.T)
             return torch.isfinite(u).all(dim=1)
 
     @contextmanager
@@ -322,10 +331,12 @@ class BatchedMonodomain:
         """The explicit scheme's reaction increment dt (w u^2 (1 - u)/tau_in - u/tau_out)."""
         return u * (self._k_in * w * u * (1.0 - u) - self._k_out)
 
-    def _explicit_step(self, u, w, forcing):
-        """(u^{n+1}, w^{n+1}) of the explicit scheme, replicas as columns (n, B)."""
+    def _explicit_step(self, u, w, forcing, out) -> None:
+        """u^{n+1} into ``out`` and w^{n+1} into ``w`` (in place) of the explicit scheme,
+        replicas as columns (n, B)."""
         new = self._C @ u + self._nodal_reaction(u, w)
-        return (new if forcing is None else new + forcing), self._gated(u, w)
+        out.copy_(new if forcing is None else new + forcing)
+        w.copy_(self._gated(u, w))
 
     def _stencil_step(self, u, w, forcing, out) -> None:
         """u^{n+1} into ``out`` and w^{n+1} into ``w`` (in place) of the explicit scheme on
@@ -397,7 +408,7 @@ class BatchedMonodomain:
         g = self._qy_t @ b.index_select(0, self._order).view(ny, nx * B)
         g = torch.matmul(self._qx_t, g.view(ny, nx, B)).div_(self._d)
         g = self._qy @ torch.matmul(self._qx, g).view(ny, nx * B)
-        x.index_copy_(0, self._order, g.view(-1, B))
+        x.copy_(g.view(-1, B).index_select(0, self._dof_order))
 
     def conjugate_gradients(self, b: torch.Tensor, x: torch.Tensor) -> None:
         """(M + dt D K) x = b for the columns of b (n, B) by Jacobi-preconditioned CG, from
