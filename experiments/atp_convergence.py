@@ -5,13 +5,14 @@ at increasing resolution.
         [--policies never,single0,single1,single2,single3,every4] [key=value ...]
     mpiexec -n 4 python experiments/atp_convergence.py ...   # 4 environments share the seeds
 
-One grid per call (``env.mesh.cells=CELLS``; the explicit scheme above 250 cells per side,
-where the implicit one costs minutes per decision). Policies: never shock, a single shock at
-decision k (``singleK``), every 4th decision. Seeds are the held-out evaluation seeds
-1000000000, 1000000001, ... Every episode appends one row (cells, scheme, policy, seed, return,
-success, shocks, length = decisions to success or failure) to ``<experiment>_convergence.csv``
-on the leader; rows already there are skipped, so a stopped study resumes. The command and
-commit of each call are appended to ``<experiment>_convergence.txt``.
+One grid per call (``env.mesh.cells=CELLS``; unless ``env.model.scheme`` is given, the explicit
+scheme above 250 cells per side, where the implicit one costs minutes per decision). Policies:
+never shock, a single shock at decision k (``singleK``), every 4th decision. Seeds are the
+held-out evaluation seeds 1000000000, 1000000001, ... Every episode appends one row (cells,
+scheme, policy, seed, return, success, shocks, length = decisions to success or failure) to
+``<experiment>_convergence.csv`` on the leader; rows already there are skipped, so a stopped
+study resumes. The command and commit of each call are appended to
+``<experiment>_convergence.txt``.
 """
 
 from __future__ import annotations
@@ -55,9 +56,10 @@ def main() -> None:
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.extra_waits=0")
     args = parser.parse_args()
     policies = {name: policy(name) for name in args.policies.split(",")}
-    scheme = "explicit" if args.cells > EXPLICIT_ABOVE else "implicit"
-    overrides = [f"env.mesh.cells={args.cells}", f"env.model.scheme={scheme}", *args.overrides]
+    default = "explicit" if args.cells > EXPLICIT_ABOVE else "implicit"
+    overrides = [f"env.mesh.cells={args.cells}", f"env.model.scheme={default}", *args.overrides]
     cfg = compose("train", [f"+experiment={args.experiment}", *overrides])
+    scheme = cfg.env.model.scheme  # an env.model.scheme override wins
     make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     results = args.out / f"{args.experiment}_convergence.csv"
     with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
@@ -72,12 +74,13 @@ def main() -> None:
         done = set()
         if results.exists():
             with results.open() as file:
-                done = {(r["cells"], r["policy"], r["seed"]) for r in csv.DictReader(file)}
+                done = {
+                    (r["cells"], r["scheme"], r["policy"], r["seed"]) for r in csv.DictReader(file)
+                }
         n = env.batch_size[0] if isinstance(env, GroupedEnv) else 1
         for name, actions in policies.items():
-            todo = [
-                s for s in held_out_seeds(args.seeds) if (str(args.cells), name, str(s)) not in done
-            ]
+            seeds = held_out_seeds(args.seeds)
+            todo = [s for s in seeds if (str(args.cells), scheme, name, str(s)) not in done]
             for start in range(0, len(todo), n):  # one episode per environment, then saved
                 for row in run_episodes(
                     env, actions, todo[start : start + n], env.task.action_counts
