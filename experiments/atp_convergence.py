@@ -1,7 +1,7 @@
 """Mesh convergence of the ATP task: the baseline policies' outcomes on the same held-out draws
 at increasing resolution.
 
-    python experiments/atp_convergence.py --experiment atp --cells 120 [--seeds 5]
+    python experiments/atp_convergence.py --experiment atp --cells 120 [--seeds 5 | --draws 1,7]
         [--policies never,single0,single1,single2,single3,every4] [key=value ...]
     mpiexec -n 4 python experiments/atp_convergence.py ...   # 4 environments share the seeds
 
@@ -50,7 +50,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--experiment", default="atp", help="the preset: atp | atp_resolved")
     parser.add_argument("--cells", type=int, required=True, help="cells per side")
-    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--seeds", type=int, default=5, help="the first N held-out seeds")
+    parser.add_argument("--draws", help="only these held-out seeds, by index: 1,7 (of --seeds)")
     parser.add_argument("--policies", default="never,single0,single1,single2,single3,every4")
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.extra_waits=0")
@@ -78,8 +79,10 @@ def main() -> None:
                     (r["cells"], r["scheme"], r["policy"], r["seed"]) for r in csv.DictReader(file)
                 }
         n = env.batch_size[0] if isinstance(env, GroupedEnv) else 1
+        seeds = held_out_seeds(args.seeds)
+        if args.draws:
+            seeds = [seeds[int(i)] for i in args.draws.split(",")]
         for name, actions in policies.items():
-            seeds = held_out_seeds(args.seeds)
             todo = [s for s in seeds if (str(args.cells), scheme, name, str(s)) not in done]
             for start in range(0, len(todo), n):  # one episode per environment, then saved
                 for row in run_episodes(

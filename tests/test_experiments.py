@@ -166,7 +166,7 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
 def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
     """The convergence script on a small grid, resuming a study with one row done (marked):
     that row is kept, and one row per other (policy, seed) is appended, with the scheduled
-    shocks."""
+    shocks; ``--draws`` runs only the chosen held-out seeds, with the scheme it is given."""
     small = [o for o in SMALL_ATP if not o.startswith("env.mesh.cells")]
     results = tmp_path / "atp_convergence.csv"
     done = "cells,scheme,policy,seed,return,success,shocks,length\n"
@@ -183,6 +183,13 @@ def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
         ("single0", "0", "1"),
         ("single0", "1", "1"),
     ]
+    arguments = ["--cells", "20", "--policies", "never", "--seeds", "3", "--draws", "2"]
+    run_script("atp_convergence.py", *arguments, "--out", str(tmp_path), *small)
+    run_script("atp_convergence.py", *arguments, "--out", str(tmp_path), *small)  # done: kept
+    explicit = [*arguments, "--out", str(tmp_path), *small, "env.model.scheme=explicit"]
+    run_script("atp_convergence.py", *explicit)
+    added = [(r["scheme"], r["seed"][-1]) for r in csv.DictReader(results.open())][4:]
+    assert added == [("implicit", "2"), ("explicit", "2")]
 
 
 def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
@@ -213,23 +220,27 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "policy, table",
+    "policy, table, overrides",
     [
-        ("atp_agent.torchrl", "atp_agent_eval.csv"),
-        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv"),
+        ("atp_agent.torchrl", "atp_agent_eval.csv", []),
+        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", []),
+        ("atp_timing_agent.torchrl", "atp_timing_agent_eval.csv", ["env.replicas=1"]),
     ],
 )
-def test_stored_atp_agent_reproduces_its_row_of_the_results_table(tmp_path, policy, table):
+def test_stored_atp_agent_reproduces_its_row_of_the_results_table(
+    tmp_path, policy, table, overrides
+):
     """A stored ATP policy (experiments/results/) on the first held-out seed, on 2 MPI ranks:
     the return, success and shocks of that seed's row in its table (run 3's made on 1 rank,
-    run B's on 2), so the tables are reproducible and do not depend on the number of ranks."""
+    run B's on 2; the timing agent's on 2 ranks of 32 torch replicas, here of one), so the
+    tables are reproducible and do not depend on the number of ranks or replicas."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
     out = tmp_path / "eval"
     command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
     command += [f"run={results / policy}", "seeds=1", "baselines=false", "gif=false"]
-    command += ["curve=false", f"hydra.run.dir={out}"]
+    command += ["curve=false", f"hydra.run.dir={out}", f"overrides={overrides}"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     (row,) = csv.DictReader((out / "eval.csv").open())
