@@ -15,11 +15,13 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, exploration_type
 from torchrl.modules import MLP, EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
@@ -41,6 +43,7 @@ __all__ = [
     "make_env",
     "make_q_network",
     "make_exploration",
+    "OneRandomAction",
     "make_loss",
     "make_target_updater",
     "make_optimizer",
@@ -193,11 +196,49 @@ def normalizer_of(q_network: nn.Module) -> Normalizer | None:
     return next((m for m in q_network.modules() if isinstance(m, Normalizer)), None)
 
 
+class OneRandomAction(TensorDictModuleBase):
+    """One exploratory decision per episode: when an episode starts (``step`` = 0), draw a
+    decision index uniformly from 0..``within``-1; at that decision, replace the action by one
+    of the other ``n_actions`` actions, drawn uniformly.
+
+    Epsilon-greedy deviates at every step independently, so an episode that deviates once, at
+    one chosen time, and then follows the policy is rare while epsilon is high and rarer still
+    when it is low; tasks where one well-timed action decides the episode (a shock) need just
+    those episodes. Reads ``step`` (the decision index, shape (*batch, 1)) and ``action``
+    (an index, shape (*batch,), or one-hot, (*batch, n_actions)); acts only under
+    ``ExplorationType.RANDOM`` (the collector's), with torch's global generator (checkpointed).
+    """
+
+    def __init__(self, within: int, n_actions: int):
+        super().__init__()
+        self.in_keys, self.out_keys = ["step", "action"], ["action"]
+        self.within, self.n_actions = int(within), int(n_actions)
+        self.chosen: torch.Tensor | None = None  # (*batch,): each episode's decision
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        if exploration_type() not in (ExplorationType.RANDOM, None):
+            return td
+        step = td["step"].reshape(td.batch_size)
+        if self.chosen is None or self.chosen.shape != step.shape:
+            self.chosen = torch.full(step.shape, -1)
+        starts = step == 0
+        self.chosen[starts] = torch.randint(self.within, (int(starts.sum()),))
+        action = td["action"]
+        one_hot = action.shape != step.shape
+        index = action.long().argmax(-1) if one_hot else action
+        other = (index + torch.randint(1, self.n_actions, index.shape)) % self.n_actions
+        index = torch.where(step == self.chosen, other, index)
+        td["action"] = torch.nn.functional.one_hot(index, self.n_actions) if one_hot else index
+        td["action"] = td["action"].to(action.dtype)
+        return td
+
+
 def make_exploration(
     q_network: TensorDictModule, env: EnvBase, exploration: Exploration | None = None
 ):
-    """``TensorDictSequential(q_network, EGreedyModule)``: epsilon-greedy, annealed linearly
-    from ``eps_init`` to ``eps_end`` over ``annealing_frames`` (call ``[-1].step(n)``)."""
+    """``TensorDictSequential(q_network, [OneRandomAction,] EGreedyModule)``: epsilon-greedy,
+    annealed linearly from ``eps_init`` to ``eps_end`` over ``annealing_frames`` (call
+    ``[-1].step(n)``), after one other action per episode if ``random_action_within`` > 0."""
     exploration = exploration or Exploration()
     greedy = EGreedyModule(
         spec=env.action_spec_unbatched,
@@ -205,7 +246,16 @@ def make_exploration(
         eps_end=exploration.eps_end,
         annealing_num_steps=exploration.annealing_frames,
     )
-    return TensorDictSequential(q_network, greedy)
+    if not exploration.random_action_within:
+        return TensorDictSequential(q_network, greedy)
+    if "step" not in env.observation_spec.keys():
+        raise ValueError(
+            "agent.exploration.random_action_within needs the env's decision index 'step' "
+            f"(its keys: {', '.join(map(str, env.observation_spec.keys()))})"
+        )
+    n_actions = env.action_spec_unbatched.space.n
+    once = OneRandomAction(exploration.random_action_within, n_actions)
+    return TensorDictSequential(q_network, once, greedy)
 
 
 def make_loss(q_network: TensorDictModule, env: EnvBase, loss: LossConfig | None = None) -> DQNLoss:

@@ -87,16 +87,20 @@ class Network:
 
 @dataclass
 class Exploration:
-    """``EGreedyModule``: epsilon annealed linearly per collected frame."""
+    """``EGreedyModule``: epsilon annealed linearly per collected frame; with
+    ``random_action_within`` = K > 0, also one other action per episode, at a decision drawn
+    from 0..K-1 (:class:`~physicsrl.builders.OneRandomAction`)."""
 
     eps_init: float = 1.0
     eps_end: float = 0.05
     annealing_frames: int = 800
+    random_action_within: int = 0
 
     def __post_init__(self):
         fraction("agent.exploration.eps_init", self.eps_init)
         fraction("agent.exploration.eps_end", self.eps_end)
         integer("agent.exploration.annealing_frames", self.annealing_frames, 1)
+        integer("agent.exploration.random_action_within", self.random_action_within, 0)
 
 
 @dataclass

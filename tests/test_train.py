@@ -134,6 +134,42 @@ def test_charge_actions_subtracts_each_actions_cost_from_its_reward():
         assert data["next", "reward"].flatten().tolist() == [1.0, 2.0, 3.0]  # not in place
 
 
+@pytest.mark.parametrize("one_hot", [False, True])
+def test_one_random_action_per_episode_at_a_decision_within_the_horizon(one_hot):
+    """``OneRandomAction``: each of 400 episodes of 6 decisions in 8 environments (batched, the
+    greedy action 0 throughout) deviates exactly once, at a decision below ``within`` (4),
+    uniformly enough to reach every one of them, to another action (of 3); the same seed
+    repeats the draws, and a deterministic rollout is untouched."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from physicsrl.builders import OneRandomAction
+
+    def episodes(seed: int, kind=ExplorationType.RANDOM) -> torch.Tensor:
+        torch.manual_seed(seed)
+        module, actions = OneRandomAction(within=4, n_actions=3), []
+        for _ in range(400):
+            for step in range(6):
+                greedy = torch.zeros(8, dtype=torch.long)
+                td = TensorDict(
+                    step=torch.full((8, 1), step),
+                    action=torch.nn.functional.one_hot(greedy, 3).bool() if one_hot else greedy,
+                    batch_size=[8],
+                )
+                with set_exploration_type(kind):
+                    action = module(td)["action"]
+                actions.append(action.long().argmax(-1) if one_hot else action)
+        return torch.stack(actions).reshape(400, 6, 8)  # (episode, decision, environment)
+
+    actions = episodes(0)
+    deviated = actions != 0
+    assert (deviated.sum(1) == 1).all()  # once per episode and environment
+    when = deviated.float().argmax(1)
+    assert set(when.flatten().tolist()) == {0, 1, 2, 3}
+    assert set(actions[deviated].tolist()) == {1, 2}
+    assert torch.equal(episodes(0), actions) and not torch.equal(episodes(1), actions)
+    assert (episodes(0, ExplorationType.DETERMINISTIC) == 0).all()
+
+
 def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
     """Rewards 1 per step, an episode ending at step 2, n = 3, gamma = 1/2: the known sums,
     next states and done flags; the DQN target bootstraps only where the episode goes on."""
