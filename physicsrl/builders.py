@@ -228,8 +228,8 @@ class OneRandomAction(TensorDictModuleBase):
         index = action.long().argmax(-1) if one_hot else action
         other = (index + torch.randint(1, self.n_actions, index.shape)) % self.n_actions
         index = torch.where(step == self.chosen, other, index)
-        td["action"] = torch.nn.functional.one_hot(index, self.n_actions) if one_hot else index
-        td["action"] = td["action"].to(action.dtype)
+        chosen = torch.nn.functional.one_hot(index, self.n_actions) if one_hot else index
+        td["action"] = chosen.to(action.dtype)
         return td
 
 
