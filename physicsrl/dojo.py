@@ -470,27 +470,21 @@ class Dojo:
             return None
         self._saved_iteration = self.counters.iteration
         self._add_time("checkpoint", time.perf_counter() - started)
-        log.info(
-            "checkpoint %s (iteration %d, %d frames, buffer %d)",
-            path,
-            self.counters.iteration,
-            self.counters.frames,
-            len(self.replay_buffer),
-        )
+        log.info("checkpoint %s (%s)", path, self._position())
         return path
 
     def load_checkpoint(self, path: str | Path) -> dict:
         """Restore the checkpoint ``path``; return its ``extra``."""
         extra: dict = {}
         self.checkpoint(extra).load(path, map_location="cpu")
-        log.info(
-            "resumed from %s at iteration %d (%d frames, buffer %d)",
-            path,
-            self.counters.iteration,
-            self.counters.frames,
-            len(self.replay_buffer),
-        )
+        log.info("resumed from %s at %s", path, self._position())
         return extra
+
+    def _position(self) -> str:
+        return (
+            f"iteration {self.counters.iteration}, {self.counters.frames} frames, "
+            f"buffer {len(self.replay_buffer)}"
+        )
 
     # logging ------------------------------------------------------------------------------
     def _open_logs(self) -> None:

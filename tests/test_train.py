@@ -366,8 +366,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
     log = (run_dir / "train.log").read_text()
     frames = killed_at * 16
     assert (
-        f"resumed from {checkpoints / checkpoint_name(killed_at)} at iteration {killed_at} "
-        f"({frames} frames, buffer {frames})" in log
+        f"resumed from {checkpoints / checkpoint_name(killed_at)} at iteration {killed_at}, "
+        f"{frames} frames, buffer {frames}" in log
     )  # counters and buffer restored
     stopped_at = final_state(run_dir)["counters"]["iteration"]
     assert killed_at + 10 <= stopped_at <= ITERATIONS
