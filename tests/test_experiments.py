@@ -220,34 +220,36 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "policy, table, overrides",
+    "policy, table, seeds",
     [
-        ("atp_agent.torchrl", "atp_agent_eval.csv", []),
-        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", []),
-        ("atp_timing_agent.torchrl", "atp_timing_agent_eval.csv", ["env.replicas=1"]),
+        ("atp_agent.torchrl", "atp_agent_eval.csv", 1),
+        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", 1),
+        ("atp_timing_agent.torchrl", "atp_timing_agent_eval.csv", 20),
     ],
 )
-def test_stored_atp_agent_reproduces_its_row_of_the_results_table(
-    tmp_path, policy, table, overrides
-):
-    """A stored ATP policy (experiments/results/) on the first held-out seed, on 2 MPI ranks:
-    the return, success and shocks of that seed's row in its table (run 3's made on 1 rank,
-    run B's on 2; the timing agent's on 2 ranks of 32 torch replicas, here of one), so the
-    tables are reproducible and do not depend on the number of ranks or replicas."""
+def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(tmp_path, policy, table, seeds):
+    """A stored ATP policy (experiments/results/) on its first held-out seeds, on 2 MPI ranks:
+    the return, success and shocks of those seeds' rows in its table. Run 3's table was made on
+    1 rank and run B's on 2, so one seed checks that they do not depend on the rank count. The
+    timing agent's (torch backend, the 20 seeds as 2 ranks x 10 replicas in one batch) is
+    checked whole, in the same batch: a replica's round-off depends on the batch's size (the
+    dense products of the fast solver), and the agent's decisions on the reentry's phase can
+    amplify it (seed 1000000000 alone returns 424, not 413)."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
     out = tmp_path / "eval"
     command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
-    command += [f"run={results / policy}", "seeds=1", "baselines=false", "gif=false"]
-    command += ["curve=false", f"hydra.run.dir={out}", f"overrides={overrides}"]
+    command += [f"run={results / policy}", f"seeds={seeds}", "baselines=false", "gif=false"]
+    command += ["curve=false", f"hydra.run.dir={out}"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    (row,) = csv.DictReader((out / "eval.csv").open())
-    stored = next(csv.DictReader((results / table).open()))
-    assert row["seed"] == stored["seed"]
-    for key in ("return", "success", "shocks"):
-        assert float(row[key]) == float(stored[key]), key
+    rows = list(csv.DictReader((out / "eval.csv").open()))
+    stored = list(csv.DictReader((results / table).open()))[:seeds]
+    assert [row["seed"] for row in rows] == [row["seed"] for row in stored]
+    for row, expected in zip(rows, stored, strict=True):
+        for key in ("return", "success", "shocks"):
+            assert float(row[key]) == float(expected[key]), (row["seed"], key)
 
 
 def test_timing_bar_reproduces_its_rows_on_two_ranks(tmp_path):

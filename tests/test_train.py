@@ -374,7 +374,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
 
     result = run(command(run_dir, "resume=true"), tmp_path)  # the newest run: this one
     assert result.returncode == 0, result.stdout + result.stderr
-    assert f"at iteration {stopped_at} " in (run_dir / "train.log").read_text()
+    assert f"at iteration {stopped_at}, " in (run_dir / "train.log").read_text()
 
     resumed, uninterrupted = final_state(run_dir), final_state(reference_dir)
     counters = ("iteration", "frames", "episodes", "updates")
