@@ -229,8 +229,9 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
 )
 def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(tmp_path, policy, table, seeds):
     """A stored ATP policy (experiments/results/) on its first held-out seeds, on 2 MPI ranks:
-    the return, success and shocks of those seeds' rows in its table. Run 3's table was made on
-    1 rank and run B's on 2, so one seed checks that they do not depend on the rank count. The
+    the return, success and shocks of those seeds' rows in its table. The report task's first
+    agent's table (atp_agent) was made on 1 rank and run B's on 2, so one seed checks that they
+    do not depend on the rank count. The
     timing agent's (torch backend, the 20 seeds as 2 ranks x 10 replicas in one batch) is
     checked whole, in the same batch: a replica's round-off depends on the batch's size (the
     dense products of the fast solver), and the agent's decisions on the reentry's phase can
