@@ -12,7 +12,8 @@ configs live beside each task in :mod:`physicsrl.envs` (``HeatConfig``, ``ATPCon
 
 Seeds: training batch ``i`` of a run with seed ``s`` resets the env with :func:`train_seed`
 ``(s, i) = s * 1e6 + i``; evaluation uses the held-out seeds 1e9, 1e9 + 1, ...
-(:func:`held_out_seeds`), never met in training while ``s < 1000``.
+(:func:`held_out_seeds`), never met in training while ``s < 1000``. A YAML names the first
+``n`` of them as ``${held_out:n}``.
 """
 
 from __future__ import annotations
@@ -326,9 +327,12 @@ def check_memory(
 
 
 def register() -> None:
-    """Make the schemas known to Hydra (``conf/train.yaml`` and ``conf/eval.yaml`` use them)."""
+    """Make the schemas known to Hydra (``conf/train.yaml`` and ``conf/eval.yaml`` use them), and
+    the resolver ``${held_out:n}``: the first ``n`` held-out seeds."""
     from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
 
+    OmegaConf.register_new_resolver("held_out", held_out_seeds, replace=True)
     store = ConfigStore.instance()
     store.store(name="train_schema", node=TrainConfig)
     store.store(name="eval_schema", node=EvalConfig)

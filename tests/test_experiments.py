@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from physicsrl.checkpoint import checkpoint_file, read
+from physicsrl.config import held_out_seeds
 from tests.conftest import ROOT, SMALL_ATP
 
 TRAIN = str(Path(sys.executable).with_name("physicsrl-train"))
@@ -52,6 +53,9 @@ def test_atp_presets_compose_with_the_report_figures():
     batched = compose("+experiment=atp_timing_batched")
     assert "rest_time:\n    - 85.0\n    - 315.0" in batched  # the timing preset's ...
     assert "backend: torch" in batched and "replicas: 32" in batched  # ... on torch replicas
+    resolved = compose("--resolve", "+experiment=atp_timing_batched")  # eval.seeds: ${held_out:20}
+    seeds = "".join(f"  - {s}\n" for s in held_out_seeds(20))
+    assert f"seeds:\n{seeds}  baselines" in resolved
 
 
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
