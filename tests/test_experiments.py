@@ -239,7 +239,7 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(tmp_path, pol
     timing agent's (torch backend, the 20 seeds as 2 ranks x 10 replicas in one batch) is
     checked whole, in the same batch: a replica's round-off depends on the batch's size (the
     dense products of the fast solver), and the agent's decisions on the reentry's phase can
-    amplify it (seed 1000000000 alone returns 424, not 413)."""
+    amplify it (run 2's agent returned 424 on seed 1000000000 alone, 413 in the batch)."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
