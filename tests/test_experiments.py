@@ -56,6 +56,7 @@ def test_atp_presets_compose_with_the_report_figures():
     resolved = compose("--resolve", "+experiment=atp_timing_batched")  # eval.seeds: ${held_out:20}
     seeds = "".join(f"  - {s}\n" for s in held_out_seeds(20))
     assert f"seeds:\n{seeds}  baselines" in resolved
+    assert "n_steps: 24" in resolved  # ${env.max_decisions}: the episode's own return
 
 
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
@@ -235,11 +236,11 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(tmp_path, pol
     """A stored ATP policy (experiments/results/) on its first held-out seeds, on 2 MPI ranks:
     the return, success and shocks of those seeds' rows in its table. The report task's first
     agent's table (atp_agent) was made on 1 rank and run B's on 2, so one seed checks that they
-    do not depend on the rank count. The
-    timing agent's (torch backend, the 20 seeds as 2 ranks x 10 replicas in one batch) is
-    checked whole, in the same batch: a replica's round-off depends on the batch's size (the
-    dense products of the fast solver), and the agent's decisions on the reentry's phase can
-    amplify it (run 2's agent returned 424 on seed 1000000000 alone, 413 in the batch)."""
+    do not depend on the rank count. The timing agent's (torch backend, the 20 seeds as 2 ranks
+    x 10 replicas in one batch) is checked whole, in the same batch: a replica's round-off
+    depends on the batch's size (the dense products of the fast solver), and the agent's
+    decisions on the reentry's phase can amplify it (run 2's agent returned 424 on seed
+    1000000000 alone, 413 in the batch)."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
