@@ -35,8 +35,8 @@ class StructuredFloor:
         module = load()
         self.lib, self.ffi = module.lib, module.ffi
         self.n = n
-        self.u, self.w = np.zeros((n + 1) ** 2), np.zeros((n + 1) ** 2)
-        self.other = np.zeros_like(self.u)
+        self.buffers = [np.zeros((n + 3, n + 1)), np.zeros((n + 3, n + 1))]  # halo rows too
+        self.w = np.zeros((n + 1) ** 2)
         self.current = None
         self.constants = (
             dt * D / (3 * h * h),
@@ -50,17 +50,19 @@ class StructuredFloor:
         )
         self.seconds = 0.0
 
+    @property
+    def u(self) -> np.ndarray:
+        """The node rows of the current u buffer, flat (a view)."""
+        return self.buffers[0][1:-1].reshape(-1)
+
     def advance(self, steps: int) -> None:
-        ffi = self.ffi
+        ffi, n = self.ffi, self.n
         current = ffi.NULL if self.current is None else pointer(ffi, self.current)
+        u, other = (pointer(ffi, b) for b in self.buffers)
         start = time.perf_counter()
         self.lib.ms_stencil(
-            self.n,
-            steps,
-            pointer(ffi, self.u),
-            pointer(ffi, self.w),
-            current,
-            *self.constants,
-            pointer(ffi, self.other),
+            n + 1, n, steps, 1, 1, u, pointer(ffi, self.w), current, *self.constants, other
         )
         self.seconds += time.perf_counter() - start
+        if steps % 2:
+            self.buffers.reverse()

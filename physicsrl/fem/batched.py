@@ -69,10 +69,11 @@ from dolfinx import fem, mesh
 
 from physicsrl.fem.errors import InvalidValue, SimulationDiverged
 from physicsrl.fem.explicit import lumped_mass
-from physicsrl.fem.grid import grid_of, square_stencil
+from physicsrl.fem.grid import grid_of
 from physicsrl.fem.monodomain import SCHEMES
 from physicsrl.fem.quadrature import CellQuadrature
 from physicsrl.fem.resolution import resolution
+from physicsrl.fem.strips import square_stencil
 from physicsrl.fem.values import finite, positive
 
 CG_RTOL = 1e-10
@@ -216,7 +217,7 @@ class BatchedMonodomain:
                 self._C = _sparse(C, self.device, self.dtype)
                 self._step = fuse(self._explicit_step)
             else:
-                self._use_grid(square[0])
+                self._use_grid(grid_of(V))
                 self._c = square[1]
                 self._step = fuse(self._stencil_step)
             return

@@ -22,15 +22,17 @@ the gate in place (a new value waits in a ring of ``lag + 1`` values until no la
 the old one: DOLFINx's dof order keeps the lag near the grid's side); then one ghost update
 (``scatter_forward``).
 
-On one rank, when the mesh is a structured grid of square Q1 cells (the rectangles of
+When the mesh is a structured grid of square Q1 cells (the rectangles of
 ``mesh.create_rectangle``), :math:`C` is the 9-point stencil
 :math:`u_{ij} - \frac{\Delta t D}{3 h^2}\big(8 u_{ij} - \sum_{\text{8 neighbours}} u\big)`,
 with the Neumann condition as a mirror (node -1 reads node 1).
-:func:`~physicsrl.fem.grid.square_stencil` detects it and checks it against the assembled rows
-on a random vector; :meth:`ExplicitStep.advance`
-then permutes the state to grid order once, runs all its steps with the stencil (``ms_stencil``:
-no index arrays, no matrix values, 32 bytes per node per step) and permutes back, when it has
-at least :data:`GRID_MIN_STEPS` steps to run (the permutations cost a few passes).
+:func:`~physicsrl.fem.strips.square_stencil` detects it and checks it against the assembled
+rows on a random vector; :meth:`ExplicitStep.advance` then moves the state to strips of node
+rows, one per rank, in grid order (:mod:`physicsrl.fem.strips`), runs its steps with the
+stencil (``ms_stencil``: no index arrays, no matrix values, 32 bytes per node per step; on
+several ranks the two halo rows are exchanged before every step, on one rank all steps run in
+one call) and moves the state back, when it has at least :data:`GRID_MIN_STEPS` steps to run
+(the transfers cost a few passes).
 
 Stability of the diffusion part: forward Euler needs :math:`\Delta t \le 2 / (D \lambda_\max)`,
 :math:`\lambda_\max` the largest eigenvalue of :math:`M_L^{-1} K` (real and non-negative: it is
@@ -48,11 +50,12 @@ import time
 import numpy as np
 import ufl
 from dolfinx import fem, la
+from dolfinx.common import IndexMap
 from mpi4py import MPI
 
 from physicsrl.fem.errors import InvalidValue
-from physicsrl.fem.grid import square_stencil
 from physicsrl.fem.kernels import pointer
+from physicsrl.fem.strips import square_stencil
 
 
 def lumped_mass(V: fem.FunctionSpace) -> np.ndarray:
@@ -67,16 +70,18 @@ def _nodal_integrals(form: fem.Form, V: fem.FunctionSpace) -> np.ndarray:
     return vector.array[: V.dofmap.index_map.size_local].copy()
 
 
-def stiffness_rows(V: fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(indptr int64, indices int32, values) of the owned rows of the stiffness matrix K, with
-    local column indices (owned then ghost dofs)."""
+def stiffness_rows(V: fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray, np.ndarray, IndexMap]:
+    """(indptr int64, indices int32, values, column map) of the owned rows of the stiffness
+    matrix K, with local column indices of the column map: V's owned and ghost dofs, then the
+    dofs that K alone couples to an owned row (on a cell of another rank that holds an owned
+    dof only at a corner; DOLFINx's sparsity pattern appends them as ghosts)."""
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
     K = fem.assemble_matrix(fem.form(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx))
     K.scatter_reverse()
     owned = V.dofmap.index_map.size_local
     indptr = np.ascontiguousarray(K.indptr[: owned + 1], dtype=np.int64)
     indices = np.ascontiguousarray(K.indices[: indptr[-1]], dtype=np.int32)
-    return indptr, indices, np.array(K.data[: indptr[-1]], dtype=np.float64)
+    return indptr, indices, np.array(K.data[: indptr[-1]], dtype=np.float64), K.index_map(1)
 
 
 GRID_MIN_STEPS = 8
@@ -101,7 +106,12 @@ class ExplicitStep:
         self.owned = V.dofmap.index_map.size_local
         self.comm = V.mesh.comm
         self.mass = lumped_mass(V)
-        indptr, indices, values = stiffness_rows(V)
+        indptr, indices, values, self.column_map = stiffness_rows(V)
+        extended = self.column_map.num_ghosts > V.dofmap.index_map.num_ghosts
+        if self.comm.allreduce(extended, op=MPI.LOR):  # (creating a vector is collective)
+            self.state = la.vector(self.column_map)  # what the rows read
+        else:
+            self.state = u.x
         rows = np.repeat(np.arange(self.owned), np.diff(indptr))
         row_sums = np.add.reduceat(np.abs(values), indptr[:-1]) if self.owned else np.zeros(0)
         self.dt_max = 2.0 / (
@@ -122,9 +132,7 @@ class ExplicitStep:
         behind = rows - indices
         self.lag = int(behind[indices < self.owned].max(initial=0))
         self.ring = np.empty(self.lag + 1)
-        self.grid = square_stencil(
-            V, lambda u: np.einsum("ij,ij->i", self.values, u[self.columns]), self.dt * D / 3
-        )
+        self.grid = square_stencil(V, self._apply, self.dt * D / 3)
         self.constants = (
             self.dt,
             tau_in,
@@ -160,52 +168,74 @@ class ExplicitStep:
             self.dt / self.mass,
             out=self.current,
         )
-        self.has_current = bool(self.current.any())
+        self.has_current = self.comm.allreduce(bool(self.current.any()), op=MPI.LOR)
 
     def advance(self, steps: int) -> None:
         """Run ``steps`` steps of u and w in place."""
         if self.grid is not None and self.kernels is not None and steps >= GRID_MIN_STEPS:
             self._advance_grid(steps)
             return
-        clock, timings, step, u = time.perf_counter, self.timings, self._step, self.u
+        clock, timings, step, state = time.perf_counter, self.timings, self._step, self.state
+        local = len(self.u.x.array)
+        if state is not self.u.x:
+            state.array[:local] = self.u.x.array
+            state.scatter_forward()
         for _ in range(steps):
             start = clock()
             step()
             middle = clock()
-            u.x.scatter_forward()
+            state.scatter_forward()
             timings["explicit"] += middle - start
             timings["ghosts"] += clock() - middle
+        if state is not self.u.x:
+            self.u.x.array[:] = state.array[:local]
 
     def _advance_grid(self, steps: int) -> None:
-        """``steps`` steps with the stencil, the state permuted to grid order and back."""
+        """``steps`` steps with the stencil on this rank's strip of the grid
+        (:mod:`physicsrl.fem.strips`): the state moved there and back, the halo rows refreshed
+        before every step on several ranks (on one all steps run in one call)."""
         start = time.perf_counter()
-        grid, c = self.grid
-        n, order = len(grid.x) - 1, grid.order
+        strips, c = self.grid
+        owned, ghosts = self.owned, 0.0
         u, w = self.u.x.array, self.w.x.array
-        grid_u, grid_w = u[order], w[order]
-        current = self.current[order] if self.has_current else None
-        other = np.empty_like(grid_u)  # held here: the C call reads its address only
-        ffi = self.kernels.ffi
-        self.kernels.lib.ms_stencil(
-            n,
-            steps,
-            pointer(ffi, grid_u),
-            pointer(ffi, grid_w),
+        strip, other = strips.scatter(u[:owned]), np.empty(strips.shape)
+        grid_w = strips.scatter(w[:owned])
+        current = strips.scatter(self.current)[1:-1] if self.has_current else None
+        ffi, kernel = self.kernels.ffi, self.kernels.lib.ms_stencil
+        rows, n = strips.shape[0] - 2, strips.width - 1
+        arguments = (
+            pointer(ffi, grid_w[1:-1]),
             ffi.NULL if current is None else pointer(ffi, current),
             c,
             *self.constants,
-            pointer(ffi, other),
         )
-        u[order], w[order] = grid_u, grid_w
-        self.timings["explicit"] += time.perf_counter() - start
+        mirror = int(strips.comm.size == 1)  # one strip: its halos are the grid's mirrors
+        for count in [steps] if mirror else [1] * steps:
+            if not mirror:
+                begin = time.perf_counter()
+                strips.fill_halos(strip)
+                ghosts += time.perf_counter() - begin
+            buffers = pointer(ffi, strip), pointer(ffi, other)
+            kernel(rows, n, count, mirror, mirror, buffers[0], *arguments, buffers[1])
+            if count % 2:
+                strip, other = other, strip
+        strips.gather(strip, u[:owned])
+        strips.gather(grid_w, w[:owned])
+        if not mirror:
+            begin = time.perf_counter()
+            self.u.x.scatter_forward()
+            self.w.x.scatter_forward()
+            ghosts += time.perf_counter() - begin
+        self.timings["explicit"] += time.perf_counter() - start - ghosts
+        self.timings["ghosts"] += ghosts
 
     def _step(self) -> None:
         current = self.current if self.has_current else None
         if self.kernels is None:
-            self._numpy_step(self.u.x.array, self.w.x.array, current)
+            self._numpy_step(self.state.array, self.w.x.array, current)
             return
         if self._args is None:  # pointers made once: the arrays stay in place
-            ffi, u, w = self.kernels.ffi, self.u.x.array, self.w.x.array
+            ffi, u, w = self.kernels.ffi, self.state.array, self.w.x.array
             self._args = (
                 (self.owned, w.size, self.width, pointer(ffi, self.columns, "int32_t *")),
                 (pointer(ffi, self.values), pointer(ffi, u), pointer(ffi, w)),
@@ -215,6 +245,13 @@ class ExplicitStep:
         head, arrays, currents, tail = self._args
         self.kernels.lib.ms_explicit(*head, *arrays, currents[current is not None], *tail)
 
+    def _apply(self, u: np.ndarray) -> np.ndarray:
+        """C times the nodal values ``u`` (this rank's dofs, ghosts included): owned rows."""
+        vector = la.vector(self.column_map)
+        vector.array[: len(u)] = u
+        vector.scatter_forward()
+        return np.einsum("ij,ij->i", self.values, vector.array[self.columns])
+
     def _numpy_step(self, u, w, current) -> None:
         dt, tau_in, tau_out, u_gate, a_open, b_open, a_close = self.constants
         n = self.owned
@@ -223,5 +260,5 @@ class ExplicitStep:
         diffusion += own * (dt / tau_in * w[:n] * own * (1.0 - own) - dt / tau_out)
         if current is not None:
             diffusion += current
-        w[:] = np.where(u < u_gate, w * a_open + b_open, w * a_close)
+        w[:] = np.where(u[: len(w)] < u_gate, w * a_open + b_open, w * a_close)
         u[:n] = diffusion

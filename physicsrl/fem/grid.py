@@ -36,7 +36,7 @@ On square cells of side h the explicit scheme's operator
 :math:`u_{ij} - c\big(8 u_{ij} - \sum_{\text{8 neighbours}} u\big)`,
 :math:`c = \Delta t D / (3 h^2)`, with the Neumann condition as a mirror (node -1 reads node
 1: the mirrored row is twice the boundary row, as the boundary's lumped mass is half);
-:func:`square_stencil` checks it against the assembled operator.
+:func:`~physicsrl.fem.strips.square_stencil` checks it against the assembled operator.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 from dolfinx import fem
+from mpi4py import MPI
 
 
 @dataclass(frozen=True)
@@ -85,24 +86,46 @@ def interval_operators(nodes: np.ndarray) -> tuple[scipy.sparse.csr_matrix, ...]
     return mass, stiffness
 
 
+def grid_axes(V: fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(x, y, index) when the dofs of ``V`` (a scalar space on a 2D mesh), on all ranks
+    together, are the nodes of a tensor grid: the node coordinates along each axis (increasing)
+    and the grid index (row-major: ``i * len(x) + j`` for node (x_j, y_i)) of this rank's dofs
+    (owned, then ghosts). Else None, on every rank. Collective."""
+    comm = V.mesh.comm
+    owned = V.dofmap.index_map.size_local
+    if V.dofmap.index_map_bs != 1 or V.mesh.geometry.dim != 2:
+        return None
+    xy = V.tabulate_dof_coordinates()[:, :2]
+    scale = comm.allreduce(float(np.abs(xy).max(initial=0.0)), op=MPI.MAX) or 1.0
+    rounded = np.round(xy / scale, 12)
+    axes = [
+        np.unique(np.concatenate(comm.allgather(np.unique(rounded[:owned, a])))) for a in (0, 1)
+    ]
+    node = [np.searchsorted(axes[a], rounded[:, a]).clip(0, len(axes[a]) - 1) for a in (0, 1)]
+    index = node[1] * len(axes[0]) + node[0]
+    grid = (
+        len(axes[0]) * len(axes[1]) == comm.allreduce(owned)
+        and min(len(a) for a in axes) >= 2
+        and all((axes[a][node[a]] == rounded[:, a]).all() for a in (0, 1))
+        and len(np.unique(index[:owned])) == owned
+    )
+    if not comm.allreduce(grid, op=MPI.LAND):
+        return None
+    return axes[0] * scale, axes[1] * scale, index
+
+
 def grid_of(V: fem.FunctionSpace, mass=None, stiffness=None) -> Grid | None:
     """The :class:`Grid` of ``V``'s dofs when ``V`` is a degree-1 Lagrange space on one rank
     whose nodes form a tensor grid, else None. With ``mass`` and ``stiffness`` (V's assembled
     scipy matrices) also None unless they equal the Kronecker products (to 1e-10 relative)."""
-    owned = V.dofmap.index_map.size_local
-    if V.mesh.comm.size > 1 or V.dofmap.index_map_bs != 1 or V.mesh.geometry.dim != 2 or owned < 4:
+    axes = grid_axes(V) if V.mesh.comm.size == 1 else None
+    if axes is None or len(axes[2]) < 4:
         return None
-    xy = V.tabulate_dof_coordinates()[:owned, :2]
-    scale = float(np.abs(xy).max()) or 1.0
-    axes = [np.unique(np.round(xy[:, a] / scale, 12)) * scale for a in (0, 1)]
-    if len(axes[0]) * len(axes[1]) != owned or min(len(a) for a in axes) < 2:
-        return None
-    node = [np.searchsorted(axes[a], np.round(xy[:, a] / scale, 12) * scale) for a in (0, 1)]
-    order = np.full(owned, -1)
-    order[node[1] * len(axes[0]) + node[0]] = np.arange(owned)
-    if (order < 0).any():
-        return None
-    grid = Grid(order, xy[order[: len(axes[0])], 0], xy[order[:: len(axes[0])], 1])
+    x, y, index = axes
+    order = np.empty_like(index)
+    order[index] = np.arange(len(index))
+    xy = V.tabulate_dof_coordinates()  # the exact coordinates, not the rounded axes
+    grid = Grid(order, xy[order[: len(x)], 0], xy[order[:: len(x)], 1])
     if mass is not None:
         for assembled, product in zip((mass, stiffness), grid.operators(), strict=True):
             difference = abs(assembled[order][:, order] - product).max()
@@ -112,31 +135,16 @@ def grid_of(V: fem.FunctionSpace, mass=None, stiffness=None) -> Grid | None:
 
 
 def nine_point_stencil(u: np.ndarray, c: float) -> np.ndarray:
-    """The 9-point stencil of the module docstring on the grid values ``u`` (n + 1, n + 1)."""
-    n = len(u) - 1
-    padded = np.pad(u, 1, mode="reflect")
+    """The 9-point stencil of the module docstring on the node rows of ``u`` (rows + 2,
+    n + 1): the rows with a halo row above and below (the columns are mirrored); shape
+    (rows, n + 1)."""
+    padded = np.pad(u, ((0, 0), (1, 1)), mode="reflect")
+    rows, n = len(u) - 2, u.shape[1] - 1
     ring = sum(
-        padded[1 + di : n + 2 + di, 1 + dj : n + 2 + dj]
+        padded[1 + di : rows + 1 + di, 1 + dj : n + 2 + dj]
         for di in (-1, 0, 1)
         for dj in (-1, 0, 1)
         if di or dj
     )
-    return u - c * (8 * u - ring)
-
-
-def square_stencil(V: fem.FunctionSpace, apply, scale: float) -> tuple[Grid, float] | None:
-    """(grid, c) when ``V``'s dofs form a grid of square cells on which ``apply`` (owned nodal
-    values (n,) -> C times them, numpy) is :func:`nine_point_stencil` with c = ``scale`` / h^2
-    (checked on a random vector), else None."""
-    grid = grid_of(V)
-    if grid is None or len(grid.x) != len(grid.y) or len(grid.x) < 3:
-        return None
-    h = grid.x[1] - grid.x[0]
-    if not all(np.allclose(np.diff(a), h, rtol=1e-9, atol=0) for a in (grid.x, grid.y)):
-        return None
-    c = scale / h**2
-    u = np.random.default_rng(0).random(len(grid.order))
-    side = (len(grid.y), len(grid.x))
-    expected = nine_point_stencil(u[grid.order].reshape(side), c)
-    rows = apply(u)[grid.order].reshape(side)
-    return (grid, c) if np.allclose(rows, expected, rtol=0, atol=1e-12) else None
+    centre = u[1:-1]
+    return centre - c * (8 * centre - ring)

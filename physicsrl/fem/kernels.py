@@ -23,10 +23,11 @@ Four loops that numpy can only express as many passes over large temporaries:
     value is held back in a small ring until no later row reads the old one), and the gate
     update of every local entry in place.
 ``ms_stencil``
-    Steps of the same scheme on a structured grid of square Q1 cells, the state in grid order
-    (:mod:`physicsrl.fem.explicit`): the operator is the 9-point stencil, the Neumann condition
-    a mirror; one pass per step reads u and w and writes the other u buffer and w (32 bytes per
-    node), with no index arrays and no matrix values.
+    Steps of the same scheme on a strip of node rows of a structured grid of square Q1 cells,
+    the state in grid order with a halo row on either side (:mod:`physicsrl.fem.strips`): the
+    operator is the 9-point stencil, the Neumann condition a mirror; one pass per step reads u
+    and w and writes the other u buffer and w (32 bytes per node), with no index arrays and no
+    matrix values.
 ``cell_det``
     :math:`|\det J|` at the quadrature points of every cell from the coordinate element's
     derivative table (gdim = tdim = 1, 2, 3), as per-cell values plus the largest relative
@@ -74,9 +75,10 @@ void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns
                  const double *values, double *u, double *w, const double *current,
                  double dt, double tau_in, double tau_out, double u_gate, double a_open,
                  double b_open, double a_close, int64_t lag, double *ring);
-void ms_stencil(int64_t n, int64_t steps, double *u, double *w, const double *current,
-                double c, double dt, double tau_in, double tau_out, double u_gate,
-                double a_open, double b_open, double a_close, double *other);
+void ms_stencil(int64_t rows, int64_t n, int64_t steps, int mirror_first, int mirror_last,
+                double *u, double *w, const double *current, double c, double dt,
+                double tau_in, double tau_out, double u_gate, double a_open, double b_open,
+                double a_close, double *other);
 """
 
 _SOURCE = r"""
@@ -233,14 +235,20 @@ void ms_explicit(int64_t owned, int64_t local, int width, const int32_t *columns
 #endif
 }
 
-/* `steps` steps on the (n + 1) x (n + 1) nodes of square Q1 cells of side h in row-major
-   order, c = dt D / (3 h^2): (M_L^-1 K u)_ij = (8 u_ij - the 8 neighbours) / (3 h^2), node -1
-   mirrored to node 1 (the Neumann condition: the mirrored row is twice the boundary row of K
-   over twice its lumped mass). u and `other` alternate; the result is left in u. current: dt I
-   per node, or NULL. */
-void ms_stencil(int64_t n, int64_t steps, double *u, double *w, const double *current,
-                double c, double dt, double tau_in, double tau_out, double u_gate,
-                double a_open, double b_open, double a_close, double *other)
+/* `steps` steps on `rows` rows of the n + 1 nodes per row of square Q1 cells of side h,
+   row-major, c = dt D / (3 h^2): (M_L^-1 K u)_ij = (8 u_ij - the 8 neighbours) / (3 h^2); at
+   an edge of the grid node -1 is mirrored to node 1 (the Neumann condition: the mirrored row
+   is twice the boundary row of K over twice its lumped mass). current: dt I per node, or NULL.
+   u and `other` hold rows + 2 rows: the halo row above (row -1), the node rows, the halo row
+   below (row `rows`); w and current hold the node rows only. Row -1 is read from the halo, or
+   from node row 1 with mirror_first; likewise row `rows` with mirror_last; the columns always
+   mirror. Each step writes the other u buffer (halos untouched) and w in place: the result is
+   in u after an even number of steps, in `other` after an odd one. Halos that are not
+   mirrors must be refreshed between steps (steps = 1). */
+void ms_stencil(int64_t rows, int64_t n, int64_t steps, int mirror_first, int mirror_last,
+                double *u, double *w, const double *current, double c, double dt,
+                double tau_in, double tau_out, double u_gate, double a_open, double b_open,
+                double a_close, double *other)
 {
     const double k_in = dt / tau_in, k_out = dt / tau_out;
     const int64_t s = n + 1;
@@ -248,11 +256,12 @@ void ms_stencil(int64_t n, int64_t steps, double *u, double *w, const double *cu
     const unsigned int csr = _mm_getcsr(); /* subnormals to zero, as in ms_rhs */
     _mm_setcsr(csr | 0x8040);
 #endif
-    double *from = u, *to = other;
+    double *from = u + s, *to = other + s; /* node row 0 */
     for (int64_t step = 0; step < steps; ++step) {
-        for (int64_t i = 0; i <= n; ++i) {
-            const double *up = from + (i == 0 ? 1 : i - 1) * s, *um = from + i * s;
-            const double *dn = from + (i == n ? n - 1 : i + 1) * s;
+        for (int64_t i = 0; i < rows; ++i) {
+            const double *up = from + (i == 0 && mirror_first ? 1 : i - 1) * s;
+            const double *um = from + i * s;
+            const double *dn = from + (i == rows - 1 && mirror_last ? rows - 2 : i + 1) * s;
             double *wi_row = w + i * s, *out = to + i * s;
             const double *cur = current ? current + i * s : 0;
             for (int64_t j = 0; j <= n; ++j) {
@@ -269,8 +278,6 @@ void ms_stencil(int64_t n, int64_t steps, double *u, double *w, const double *cu
         from = to;
         to = swap;
     }
-    if (from != u)
-        memcpy(u, from, sizeof(double) * s * s);
 #if defined(__SSE__)
     _mm_setcsr(csr);
 #endif

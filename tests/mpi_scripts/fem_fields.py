@@ -1,10 +1,13 @@
 """Run the simulators on this job's ranks; the leader saves the fields to argv[1] (npz).
 
 Mitchell-Schaeffer: the benchmark set-up of physicsrl.bench.ms on 24 x 24 cells, 60 steps
-(stimulus during the first 30), with the scheme argv[2] (default implicit); heat: the default
-environment with u0 = x + 2y, 0.1 time units.
-Saved: dof coordinates, u and w of the monodomain model (owned dofs of all ranks), the heat
-quadrant integrals at t = 0 and t = 0.1, and the heat u with its coordinates.
+(stimulus during the first 30), with the scheme argv[2] (default implicit), 30 steps per call
+or, with argv[3] = "stepwise", one (the explicit scheme's general row pass instead of the
+strips of its structured path); heat: the default environment with u0 = x + 2y, 0.1 time
+units.
+Saved: dof coordinates, u and w of the monodomain model (owned dofs of all ranks), whether
+the explicit scheme found its strips, the heat quadrant integrals at t = 0 and t = 0.1, and
+the heat u with its coordinates.
 """
 
 import sys
@@ -29,18 +32,21 @@ def gather(function):
 
 coordinator = Coordinator()
 scheme = sys.argv[2] if len(sys.argv) > 2 else "implicit"
+calls = 30 if sys.argv[3:] == ["stepwise"] else 1
 ms = MonodomainMitchellSchaeffer(
     coordinator, default_ms_mesh(n=24), w0=w0, I_app=stimulus, scheme=scheme
 )
 heat = HeatEnvironment(coordinator, u0=lambda x: x[0] + 2 * x[1])
 with coordinator:
     if coordinator.is_leader():
-        ms.advance_time(30 * DT)
-        ms.set_I_app(no_current)
-        ms.advance_time(30 * DT)
+        for current in (stimulus, no_current):
+            ms.set_I_app(current)
+            for _ in range(calls):
+                ms.advance_time(30 * DT / calls)
         initial = heat.quadrant_integrals()
         heat.advance_time(0.1)
         quadrants = heat.quadrant_integrals()
 u, w, h = gather(ms.u_n()), gather(ms.w_n()), gather(heat.u_n())
 if MPI.COMM_WORLD.rank == 0:
-    np.savez(sys.argv[1], u=u, w=w, heat=h, quadrants=quadrants, initial=initial)
+    strips = ms._explicit is not None and ms._explicit.grid is not None
+    np.savez(sys.argv[1], u=u, w=w, strips=strips, heat=h, quadrants=quadrants, initial=initial)
