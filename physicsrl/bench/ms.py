@@ -11,10 +11,10 @@ call instead (as a task's decision does: 1667 steps), the steps of a call counte
 the first call's as the first step. physicsrl computes the right-hand side with its compiled C
 kernel; ``+rhs=numpy`` selects the numpy kernel and ``+rhs=form``
 DOLFINx's assembly of the UFL form. Run in the same job for physicsrl's schemes
-(``scheme=implicit``, ``explicit`` or ``both``), on one rank with the explicit scheme for its
-floor (:mod:`physicsrl.bench.ms_floor`: a fused structured-grid C loop on the same state,
-whose final u is compared), and, unless ``baseline=false``, for the port of the report's code
-(:mod:`physicsrl.baselines.report_fem`).
+(``scheme=implicit``, ``explicit`` or ``both``), with the explicit scheme for its floor
+(:mod:`physicsrl.bench.ms_floor`: the fused structured-grid C loop alone on each rank's strip
+of the same state; on one rank its final u is compared), and, unless ``baseline=false``, for
+the port of the report's code (:mod:`physicsrl.baselines.report_fem`).
 
 Per implementation: setup time (mesh excluded, forms, matrix, initial conditions), the first
 step, the mean of the other steps split into linear solve, right-hand side, ionic (gate)
@@ -130,47 +130,54 @@ def _measure(name: str, build, steps: int, per_call: int) -> tuple[dict, object]
     return row, model
 
 
-def _floor(model, n: int, steps: int, per_call: int) -> dict:
-    """The floor's row (one rank): the same initial state, current and steps as ``model``
-    (built but not yet run), in grid order; its final u is compared with the model's."""
+def _floor(model, steps: int, per_call: int) -> dict:
+    """The floor's row: the kernel alone on this rank's strip of the grid
+    (:class:`StructuredFloor`), with the same initial state, current and steps as ``model``
+    (built with the explicit scheme, not yet run), all ranks at once, no transfers and no halo
+    exchange (each strip's edges mirrored: on several ranks only its time is comparable). Its
+    final u (this rank's owned dofs) is compared with the model's on one rank."""
+    comm = MPI.COMM_WORLD
     start = time.perf_counter()
-    h = 2 * EXTENT / n
-    parameters = {k: float(getattr(model, k).value) for k in ("D", "tau_in", "tau_out")}
+    explicit = model._explicit
+    strips, c = explicit.grid
+    owned = explicit.owned
     floor = StructuredFloor(
-        n,
-        h,
-        **parameters,
+        strips.shape[0] - 2,
+        strips.width - 1,
+        c,
+        dt=DT,
+        tau_in=float(model.tau_in.value),
+        tau_out=float(model.tau_out.value),
         tau_open=model.tau_open,
         tau_close=model.tau_close,
         u_gate=model.u_gate,
-        dt=DT,
     )
-    xy = model.V.tabulate_dof_coordinates()[:, :2]
-    grid = np.rint((xy + EXTENT) / h).astype(np.int64)
-    order = grid[:, 1] * (n + 1) + grid[:, 0]  # dof -> grid index
-    floor.u[order], floor.w[order] = model.u_n().x.array, model.w_n().x.array
-    current = np.zeros_like(floor.u)
-    current[order] = model._explicit.current
-    floor.current = current
+    floor.buffers[0][:] = strips.scatter(model.u_n().x.array[:owned])
+    floor.w[:] = strips.scatter(model.w_n().x.array[:owned])[1:-1].ravel()
+    floor.current = strips.scatter(explicit.current)[1:-1].ravel()
     setup = time.perf_counter() - start
     walls = []
     for step, count in calls(steps, per_call):
         if step == STIMULUS_STEPS:
             floor.current = None
+        comm.Barrier()
         begin = time.perf_counter()
         floor.advance(count)
-        walls += [(time.perf_counter() - begin) / count] * count
+        wall = comm.allreduce(time.perf_counter() - begin, op=MPI.MAX)
+        walls += [wall / count] * count
     times = _summary(walls, {}, {}, steps, calls(steps, per_call)[0][1])
+    u = np.empty(owned)
+    strips.gather(floor.buffers[0], u)
     return {
         "implementation": "floor (structured C loop)",
-        "ranks": 1,
-        "dofs": floor.u.size,
+        "ranks": comm.size,
+        "dofs": comm.allreduce(owned),
         "steps": steps,
         "setup_s": round(setup, 3),
         "first_step_ms": round(times["first_step_ms"], 3),
         "step_ms": round(times["step_ms"], 4),
         "run_s": round(times["run_s"], 3),
-        "u": floor.u[order],
+        "u": u,
     }
 
 
@@ -208,14 +215,16 @@ def run(cfg) -> list[dict]:
         builds["report (baseline)"] = theirs
     rows, models = [], []
     for name, build in builds.items():
-        if name.endswith("explicit") and comm.size == 1:
-            floor = _floor(build()[1], n, steps, per_call)
+        floor = None
+        if name.endswith("explicit") and rhs == "compiled":
+            floor = _floor(build()[1], steps, per_call)
         row, model = _measure(name, build, steps, per_call)
         rows.append(row)
         models.append(model)
-        if name.endswith("explicit") and comm.size == 1:
-            owned = model.u_n().x.array
-            floor["max_abs_diff_u"] = float(np.abs(floor.pop("u") - owned).max())
+        if floor is not None:
+            u = floor.pop("u")
+            if comm.size == 1:
+                floor["max_abs_diff_u"] = float(np.abs(u - model.u_n().x.array[: len(u)]).max())
             rows.append(floor)
             models.append(None)
     owned = models[0].u_n().function_space.dofmap.index_map.size_local

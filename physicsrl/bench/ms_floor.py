@@ -13,13 +13,13 @@ is twice the boundary row of K over twice its lumped mass, so this is the assemb
 One pass per step reads u and w, writes u_next and w (32 bytes per node), and the two u
 arrays alternate: no index arrays, no matrix values, no ghost update. It is the kernel of the
 explicit scheme's structured path (:mod:`physicsrl.fem.explicit`), here called bare on arrays
-kept in grid order: no permutation, no per-call checks. The benchmark runs it in the same job
-as :class:`~physicsrl.fem.MonodomainMitchellSchaeffer` and compares the fields.
+kept in grid order: no transfers, no per-call checks, and on several ranks no halo exchange
+(each rank's strip of rows as a grid of its own, edges mirrored). The benchmark runs it in the
+same job as :class:`~physicsrl.fem.MonodomainMitchellSchaeffer` and, on one rank, compares the
+fields.
 """
 
 from __future__ import annotations
-
-import time
 
 import numpy as np
 
@@ -27,19 +27,21 @@ from physicsrl.fem.kernels import load, pointer
 
 
 class StructuredFloor:
-    """The floor loop (``ms_stencil`` of :mod:`physicsrl.fem.kernels`) on n x n square cells
-    of side h, with the model's parameters; the state ``u``, ``w`` (shape ((n + 1)^2,), grid
-    order) and ``current`` (dt I per node, or None)."""
+    """The floor loop (``ms_stencil`` of :mod:`physicsrl.fem.kernels`) on ``rows`` rows of
+    n + 1 nodes of square Q1 cells, c = dt D / (3 h^2), the model's parameters; its edges
+    mirrored (a whole grid when rows = n + 1). The state: ``buffers[0]`` (u with a halo row on
+    either side, (rows + 2, n + 1)), ``w`` and ``current`` (dt I per node, or None), both of
+    shape (rows (n + 1),), in grid order."""
 
-    def __init__(self, n, h, *, D, tau_in, tau_out, tau_open, tau_close, u_gate, dt):
+    def __init__(self, rows, n, c, *, dt, tau_in, tau_out, tau_open, tau_close, u_gate):
         module = load()
         self.lib, self.ffi = module.lib, module.ffi
-        self.n = n
-        self.buffers = [np.zeros((n + 3, n + 1)), np.zeros((n + 3, n + 1))]  # halo rows too
-        self.w = np.zeros((n + 1) ** 2)
+        self.rows, self.n = rows, n
+        self.buffers = [np.zeros((rows + 2, n + 1)), np.zeros((rows + 2, n + 1))]
+        self.w = np.zeros(rows * (n + 1))
         self.current = None
         self.constants = (
-            dt * D / (3 * h * h),
+            c,
             dt,
             tau_in,
             tau_out,
@@ -48,21 +50,13 @@ class StructuredFloor:
             dt / tau_open,
             1.0 - dt / tau_close,
         )
-        self.seconds = 0.0
-
-    @property
-    def u(self) -> np.ndarray:
-        """The node rows of the current u buffer, flat (a view)."""
-        return self.buffers[0][1:-1].reshape(-1)
 
     def advance(self, steps: int) -> None:
         ffi, n = self.ffi, self.n
         current = ffi.NULL if self.current is None else pointer(ffi, self.current)
         u, other = (pointer(ffi, b) for b in self.buffers)
-        start = time.perf_counter()
         self.lib.ms_stencil(
-            n + 1, n, steps, 1, 1, u, pointer(ffi, self.w), current, *self.constants, other
+            self.rows, n, steps, 1, 1, u, pointer(ffi, self.w), current, *self.constants, other
         )
-        self.seconds += time.perf_counter() - start
         if steps % 2:
             self.buffers.reverse()
