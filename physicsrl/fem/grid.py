@@ -97,21 +97,26 @@ def grid_axes(V: fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         return None
     xy = V.tabulate_dof_coordinates()[:, :2]
     scale = comm.allreduce(float(np.abs(xy).max(initial=0.0)), op=MPI.MAX) or 1.0
-    rounded = np.round(xy / scale, 12)
-    axes = [
-        np.unique(np.concatenate(comm.allgather(np.unique(rounded[:owned, a])))) for a in (0, 1)
-    ]
-    node = [np.searchsorted(axes[a], rounded[:, a]).clip(0, len(axes[a]) - 1) for a in (0, 1)]
-    index = node[1] * len(axes[0]) + node[0]
+    rounded = np.round(xy / scale, 12)  # the keys that identify a grid line
+    keys, axes = [], []  # per axis: the lines' keys and coordinates (one dof's, exact)
+    for a in (0, 1):
+        mine, first = np.unique(rounded[:owned, a], return_index=True)
+        every = np.concatenate(comm.allgather(mine))
+        coordinates = np.concatenate(comm.allgather(xy[:owned, a][first]))
+        unique, pick = np.unique(every, return_index=True)
+        keys.append(unique)
+        axes.append(coordinates[pick])
+    node = [np.searchsorted(keys[a], rounded[:, a]).clip(0, len(keys[a]) - 1) for a in (0, 1)]
+    index = node[1] * len(keys[0]) + node[0]
     grid = (
-        len(axes[0]) * len(axes[1]) == comm.allreduce(owned)
-        and min(len(a) for a in axes) >= 2
-        and all((axes[a][node[a]] == rounded[:, a]).all() for a in (0, 1))
-        and len(np.unique(index[:owned])) == owned
+        len(keys[0]) * len(keys[1]) == comm.allreduce(owned)
+        and min(len(k) for k in keys) >= 2
+        and all((keys[a][node[a]] == rounded[:, a]).all() for a in (0, 1))
+        and (np.diff(np.sort(index[:owned])) > 0).all()  # no node twice
     )
     if not comm.allreduce(grid, op=MPI.LAND):
         return None
-    return axes[0] * scale, axes[1] * scale, index
+    return axes[0], axes[1], index
 
 
 def grid_of(V: fem.FunctionSpace, mass=None, stiffness=None) -> Grid | None:
@@ -124,8 +129,7 @@ def grid_of(V: fem.FunctionSpace, mass=None, stiffness=None) -> Grid | None:
     x, y, index = axes
     order = np.empty_like(index)
     order[index] = np.arange(len(index))
-    xy = V.tabulate_dof_coordinates()  # the exact coordinates, not the rounded axes
-    grid = Grid(order, xy[order[: len(x)], 0], xy[order[:: len(x)], 1])
+    grid = Grid(order, x, y)
     if mass is not None:
         for assembled, product in zip((mass, stiffness), grid.operators(), strict=True):
             difference = abs(assembled[order][:, order] - product).max()
