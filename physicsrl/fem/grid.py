@@ -3,9 +3,10 @@ the direct solve of :math:`(M + c K) x = b` by fast diagonalisation.
 
 On the rectangles of ``mesh.create_rectangle`` (quadrilateral cells) the dofs of the Lagrange
 degree-1 space, over all ranks, are the nodes :math:`(x_j, y_i)` of a tensor grid
-(:func:`grid_axes`), :math:`n_x` nodes per row and :math:`n_y` rows. In grid order (row-major, node :math:`k = i n_x + j`) the
-Q1 mass and stiffness matrices are Kronecker products of the 1D P1 matrices of the node
-coordinates (exact, with the exact quadrature DOLFINx uses):
+(:func:`grid_axes`), :math:`n_x` nodes per row and :math:`n_y` rows. In grid order
+(row-major, node :math:`k = i n_x + j`) the Q1 mass and stiffness matrices are Kronecker
+products of the 1D P1 matrices of the node coordinates (exact, with the exact quadrature
+DOLFINx uses):
 
 .. math::
 
