@@ -209,16 +209,17 @@ class ExplicitStep:
             c,
             *self.constants,
         )
+        buffers = [pointer(ffi, strip), pointer(ffi, other)]  # swapped with the arrays
         mirror = int(strips.comm.size == 1)  # one strip: its halos are the grid's mirrors
         for count in [steps] if mirror else [1] * steps:
             if not mirror:
                 begin = time.perf_counter()
                 strips.fill_halos(strip)
                 ghosts += time.perf_counter() - begin
-            buffers = pointer(ffi, strip), pointer(ffi, other)
             kernel(rows, n, count, mirror, mirror, buffers[0], *arguments, buffers[1])
             if count % 2:
                 strip, other = other, strip
+                buffers.reverse()
         strips.gather(strip, u[:owned])
         strips.gather(grid_w, w[:owned])
         if not mirror:
