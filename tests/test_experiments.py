@@ -62,7 +62,9 @@ def test_atp_presets_compose_with_the_report_figures():
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
     """``mpiexec -n 2 physicsrl-train +experiment=atp`` (on a small grid): two environments,
     said in the first log line, with the preset's 8-step targets over a batch of both, and
-    batches of frames_per_env transitions per environment."""
+    batches of frames_per_env transitions per environment. The resolution guard, under MPI:
+    the mesh's resolution printed once, and, as 20 x 20 cells do not resolve the front, one
+    warning line, not one per rank or per environment."""
     run = tmp_path / "run"
     command = [TRAIN, "+experiment=atp", "mpi.ranks=2", *SMALL_ATP, "iterations=2"]
     command += ["collector.frames_per_env=3", "optim.learning_starts=6", "eval.every=0"]
@@ -73,6 +75,8 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
     assert result.returncode == 0, result.stderr
     first = next(line for line in (run / "train.log").read_text().splitlines() if "INFO" in line)
     assert "2 environments of 1 rank (2 ranks)" in first
+    assert result.stdout.count("resolution: h = ") == 1, result.stdout
+    assert result.stderr.count("the mesh does not resolve the front") == 1, result.stderr
     summary = json.loads((run / "summary.json").read_text())["summary"]
     assert summary["frames"] == 12 and summary["updates"] > 0
     # experiments/store_policy.py keeps the network's weights, without the replay buffer
