@@ -26,8 +26,9 @@ down (-y) with a refractory tail ~20 mm long behind its front. At
 x < ``edge``, y > ``bottom`` (``edge`` ~ U(``s2_edge``), ``bottom`` ~ U(``s2_bottom``)) for
 ``stimulus_time``: it excites the recovered tissue above the tail; the S2 wave cannot enter the
 tail, and its end at (``edge``, the tail's top) curls into a spiral as the tail recovers.
-``rest_time`` later the agent starts. The S1 state at ``s1_time`` is the same for every draw:
-it is simulated once per task and kept in memory.
+``rest_time`` later the agent starts (a pair: drawn, as for the report's induction). The S1
+state at ``s1_time`` is the same for every draw: it is simulated once per task and kept in
+memory.
 
 Step: action 0 waits ``decision_interval``; action 1 shocks: ``shock.current`` on the disk of
 radius ``shock.radius`` around ``shock.centre`` for ``shock.duration``, then no current for the
@@ -127,6 +128,15 @@ class MSModel:
         return {"device": self.device, "dtype": dtype, "compiled": self.compile}
 
 
+def rest_range(value) -> tuple[float, float]:
+    """A ``rest_time`` setting as (low, high): a number t is (t, t), a fixed rest; a pair
+    [low, high] is the range the rest is drawn from uniformly."""
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        return interval("rest_time", value, low=0.0)
+    rest = number("rest_time", value, low=0.0)
+    return rest, rest
+
+
 @dataclass(frozen=True)
 class ResetStimulus:
     """How a reset induces the arrhythmia (see the module docstring)."""
@@ -148,9 +158,7 @@ class ResetStimulus:
         positive("w_slope", self.w_slope)
         number("current", self.current)
         number("stimulus_time", self.stimulus_time, low=0.0)
-        rest = self.rest_time
-        rest = (number("rest_time", rest, low=0.0),) * 2 if not isinstance(rest, Sequence) else rest
-        object.__setattr__(self, "rest_time", interval("rest_time", rest, low=0.0))
+        object.__setattr__(self, "rest_time", rest_range(self.rest_time))
         integer("pool", self.pool)
         integer("pool_seed", self.pool_seed)
 
@@ -158,24 +166,20 @@ class ResetStimulus:
 class ResetSampler:
     """``sampler(rng)`` -> the draws of a reset (:meth:`ATPTask.draw`): uniform in the ranges
     of the config's induction, or one of a fixed pool of ``reset.pool`` such draws (generated
-    from ``reset.pool_seed``)."""
+    from ``reset.pool_seed``). The rest before the first decision is the last draw."""
 
     def __init__(self, config: ATPConfig):
-        self.rest = None  # the report induction's rest range, drawn last when it is one
         if config.induction == "report":
             r = config.reset
-            self.ranges = (r.centre_x, r.half_width, r.bottom)
-            self.rest = r.rest_time
+            self.ranges, self.rest = (r.centre_x, r.half_width, r.bottom), r.rest_time
         else:
             f = config.cross_field
-            self.ranges = (f.s2_delay, f.s2_edge, f.s2_bottom)
+            self.ranges, self.rest = (f.s2_delay, f.s2_edge, f.s2_bottom), f.rest_time
         rng = np.random.default_rng(config.reset.pool_seed)
         self.pool = [self._uniform(rng) for _ in range(config.reset.pool)]
 
     def _uniform(self, rng: np.random.Generator) -> tuple[float, ...]:
         draws = tuple(float(rng.uniform(*bounds)) for bounds in self.ranges)
-        if self.rest is None:
-            return draws
         low, high = self.rest  # a fixed rest takes no random number: the draws stay as they were
         return (*draws, float(rng.uniform(low, high)) if low < high else low)
 
@@ -195,7 +199,7 @@ class CrossField:
     s2_bottom: tuple[float, float] = (10.0, 20.0)
     current: float = 50.0
     stimulus_time: float = 2.0
-    rest_time: float = 50.0
+    rest_time: float | tuple[float, float] = 50.0  # a pair: drawn uniformly
 
     def __post_init__(self):
         number("s1_bottom", self.s1_bottom)
@@ -205,7 +209,7 @@ class CrossField:
             object.__setattr__(self, name, interval(name, getattr(self, name)))
         number("current", self.current)
         number("stimulus_time", self.stimulus_time, low=0.0)
-        number("rest_time", self.rest_time, low=0.0)
+        object.__setattr__(self, "rest_time", rest_range(self.rest_time))
 
 
 INDUCTIONS = ("report", "cross_field")
@@ -330,8 +334,8 @@ class ATPTask(Task):
 
     def draw(self, rng: np.random.Generator) -> tuple[float, ...]:
         """The reset's draws: (c, h, b, rest), the centre, half-width and bottom of the
-        stimulus and the rest after it (``induction: report``), or (delay, edge, bottom) of S2
-        (``cross_field``)."""
+        stimulus and the rest after it (``induction: report``), or (delay, edge, bottom, rest)
+        of S2 and the rest after it (``cross_field``)."""
         return self.sampler(rng)
 
     # episodes --------------------------------------------------------------------------------
@@ -347,7 +351,7 @@ class ATPTask(Task):
         sim.reset()
         self._stimulate(self.stimulus(r.current, c, h, b), r.stimulus_time, rest)
 
-    def _cross_field(self, delay: float, edge: float, bottom: float) -> None:
+    def _cross_field(self, delay: float, edge: float, bottom: float, rest: float) -> None:
         f, sim = self.config.cross_field, self.simulator
         far = self.config.mesh.extent
         if self._s1_state is None:
@@ -360,7 +364,7 @@ class ATPTask(Task):
         self._run(delay)
         # x < edge: the rectangle |x - c| < h with its left side beyond the domain.
         s2 = self.stimulus(f.current, -far, edge + far, bottom)
-        self._stimulate(s2, f.stimulus_time, f.rest_time)
+        self._stimulate(s2, f.stimulus_time, rest)
 
     def _stimulate(self, current, duration: float, rest: float) -> None:
         """Apply ``current`` for ``duration``, then nothing for ``rest``."""
@@ -381,7 +385,7 @@ class ATPTask(Task):
         if self.config.induction == "report":
             return self.config.reset.stimulus_time + draws[3]
         f = self.config.cross_field
-        return f.s1_time + draws[0] + f.stimulus_time + f.rest_time
+        return f.s1_time + draws[0] + f.stimulus_time + draws[3]
 
     @parallel
     def reset(self, *draws: float) -> np.ndarray | None:
