@@ -57,6 +57,9 @@ def test_atp_presets_compose_with_the_report_figures():
     seeds = "".join(f"  - {s}\n" for s in held_out_seeds(20))
     assert f"seeds:\n{seeds}  baselines" in resolved
     assert "n_steps: 24" in resolved  # ${env.max_decisions}: the episode's own return
+    timing = compose("+experiment=atp_resolved_timing")  # the resolved task, a drawn phase
+    assert "cells: 1000" in timing and "induction: cross_field" in timing
+    assert "radius: 50.0" in timing and "rest_time:\n    - 200.0\n    - 450.0" in timing
 
 
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
