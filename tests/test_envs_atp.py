@@ -50,27 +50,33 @@ def test_default_atp_config_is_the_reference_task():
     assert (cfg.reward.shock_cost, cfg.reward.success_reward) == (10, 500)
 
 
-def test_a_rest_range_starts_the_agent_at_a_drawn_time():
-    """``reset.rest_time=[a, b]``: the rest after the stimulus is drawn from U(a, b) after the
-    stimulus draws, which stay those of a fixed rest (the generator's stream is unchanged);
-    the agent starts at model time stimulus_time + rest, and the field then differs from the
-    state after a rest of a alone."""
-    fixed, ranged = atp_env(), atp_env("env.reset.rest_time=[3,13]")
+def check_rest_range(fixed, ranged, low: float, high: float, before_rest) -> None:
+    """``ranged`` (``rest_time=[low, high]``) draws the rest after its other draws, which stay
+    those of ``fixed`` (``rest_time=low``: the generator's stream is unchanged); the agent
+    starts at model time ``before_rest(draws)`` + rest, with another field than after a rest
+    of ``low``."""
     draws = {
         name: [env.task.draw(np.random.default_rng(s)) for s in range(20)]
         for name, env in (("fixed", fixed), ("ranged", ranged))
     }
-    assert all(d[3] == 3.0 for d in draws["fixed"])
+    assert all(d[3] == low for d in draws["fixed"])
     assert [d[:3] for d in draws["ranged"]] == [d[:3] for d in draws["fixed"]]
     rests = np.array([d[3] for d in draws["ranged"]])
-    assert 3 <= rests.min() and rests.max() <= 13 and np.ptp(rests) > 5
-    with ranged.task.coordinator:
-        ranged.task.reset(*draws["ranged"][0])
-        late = ranged.task.simulator.u_n().x.array.copy()
-        assert ranged.task.simulator.t == pytest.approx(2 + rests[0], abs=0.03)
-        ranged.task.reset(*draws["ranged"][0][:3], 3.0)
-        assert ranged.task.simulator.t == pytest.approx(5, abs=0.03)
-        assert np.abs(ranged.task.simulator.u_n().x.array - late).max() > 0.01
+    assert low <= rests.min() and rests.max() <= high and np.ptp(rests) > (high - low) / 2
+    task, first = ranged.task, draws["ranged"][0]
+    with task.coordinator:
+        task.reset(*first)
+        late = task.simulator.u_n().x.array.copy()
+        assert task.simulator.t == pytest.approx(before_rest(first) + first[3], abs=0.03)
+        task.reset(*first[:3], low)
+        assert task.simulator.t == pytest.approx(before_rest(first) + low, abs=0.03)
+        assert np.abs(task.simulator.u_n().x.array - late).max() > 0.01
+
+
+def test_a_rest_range_starts_the_agent_at_a_drawn_time():
+    """``reset.rest_time=[3, 13]``: the rest after the stimulus (2 time units) is drawn."""
+    fixed, ranged = atp_env(), atp_env("env.reset.rest_time=[3,13]")
+    check_rest_range(fixed, ranged, 3.0, 13.0, lambda draws: 2.0)
 
 
 def test_atp_failure_and_success_by_hand():

@@ -6,8 +6,8 @@ import json
 
 import dolfinx_solver  # noqa: F401 (loads MPI before dolfinx)
 import numpy as np
-import pytest
 from conftest import run_mpi
+from test_envs_atp import check_rest_range
 from test_fem_monodomain import topological_charges
 
 from physicsrl.coordinated import Coordinator
@@ -54,26 +54,10 @@ def test_s2_in_the_s1_tail_breaks_the_wave():
 
 
 def test_a_rest_range_starts_the_agent_at_a_drawn_phase():
-    """``cross_field.rest_time=[a, b]``: the rest after S2 is drawn from U(a, b) after the S2
-    draws, which stay those of a fixed rest; the agent starts at model time s1_time + delay +
-    stimulus_time + rest, with another field than after a rest of a."""
+    """``cross_field.rest_time=[20, 40]``: the rest after S2 is drawn; the agent starts at
+    s1_time + delay + S2's stimulus_time + rest."""
     fixed, ranged = resolved_env(), resolved_env("env.cross_field.rest_time=[20,40]")
-    draws = {
-        name: [env.task.draw(np.random.default_rng(s)) for s in range(20)]
-        for name, env in (("fixed", fixed), ("ranged", ranged))
-    }
-    assert all(d[3] == 20.0 for d in draws["fixed"])
-    assert [d[:3] for d in draws["ranged"]] == [d[:3] for d in draws["fixed"]]
-    rests = np.array([d[3] for d in draws["ranged"]])
-    assert 20 <= rests.min() and rests.max() <= 40 and np.ptp(rests) > 10
-    task, delay = ranged.task, draws["ranged"][0][0]
-    with task.coordinator:
-        task.reset(*draws["ranged"][0])
-        late = task.simulator.u_n().x.array.copy()
-        assert task.simulator.t == pytest.approx(220 + delay + 2 + rests[0], abs=0.03)
-        task.reset(*draws["ranged"][0][:3], 20.0)
-        assert task.simulator.t == pytest.approx(220 + delay + 2 + 20, abs=0.03)
-        assert np.abs(task.simulator.u_n().x.array - late).max() > 0.01
+    check_rest_range(fixed, ranged, 20.0, 40.0, lambda draws: 220 + draws[0] + 2)
 
 
 SAME_ON_RANKS = """
