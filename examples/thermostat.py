@@ -22,7 +22,7 @@ import torch
 
 from physicsrl.builders import make_q_network
 from physicsrl.checks import integer, positive
-from physicsrl.config import held_out_seeds
+from physicsrl.config import OptimConfig, TrainConfig, held_out_seeds
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.dojo import Dojo
 from physicsrl.envs import (
@@ -114,8 +114,9 @@ def main(iterations: int) -> dict[str, float]:
     with coordinator:
         if coordinator.is_leader():
             torch.manual_seed(0)
-            dojo = Dojo(make_q_network(env), env, frames_per_batch=20, learning_starts=100)
-            dojo.train(iterations)
+            config = TrainConfig(iterations=iterations, optim=OptimConfig(learning_starts=100))
+            dojo = Dojo(make_q_network(env), env, config)
+            dojo.train()
             seeds = held_out_seeds(5)
             policies = {"greedy DQN": dojo.q_network, **task.baselines(env, seeds, 0)}
             _, means = compare(env, policies, seeds, task.action_counts)

@@ -1,9 +1,8 @@
 """Factories for the training runner: env, Q-network, exploration, loss, target updater, buffer.
 
 Each factory takes the typed config section (:mod:`physicsrl.config`) named after the TorchRL
-object it builds (None: that section's defaults) and returns that object, so that
-:class:`physicsrl.dojo.Dojo` can be used from Python with hand-made objects or from
-``physicsrl-train`` with these.
+object it builds and returns that object; :class:`physicsrl.dojo.Dojo` builds its objects with
+them.
 """
 
 from __future__ import annotations
@@ -163,7 +162,8 @@ def make_q_network(env: EnvBase, network: Network | None = None):
     ``network``: ``inputs`` (the env keys the network reads, concatenated in this order;
     default ``[observation]``; e.g. ``[observation, step]`` adds the decision index),
     ``hidden`` (list of layer widths), ``activation`` (relu, tanh, elu, gelu), ``normalize``
-    (put a :class:`Normalizer` first; the Dojo fits it once from the first collected data).
+    (put a :class:`Normalizer` first; the Dojo fits it once from the first collected data);
+    default: :class:`~physicsrl.config.Network`'s defaults.
     """
     network = network or Network()
     inputs = [str(key) for key in network.inputs]
@@ -233,13 +233,10 @@ class OneRandomAction(TensorDictModuleBase):
         return td
 
 
-def make_exploration(
-    q_network: TensorDictModule, env: EnvBase, exploration: Exploration | None = None
-):
+def make_exploration(q_network: TensorDictModule, env: EnvBase, exploration: Exploration):
     """``TensorDictSequential(q_network, [OneRandomAction,] EGreedyModule)``: epsilon-greedy,
     annealed linearly from ``eps_init`` to ``eps_end`` over ``annealing_frames`` (call
     ``[-1].step(n)``), after one other action per episode if ``random_action_within`` > 0."""
-    exploration = exploration or Exploration()
     greedy = EGreedyModule(
         spec=env.action_spec_unbatched,
         eps_init=exploration.eps_init,
@@ -258,9 +255,8 @@ def make_exploration(
     return TensorDictSequential(q_network, once, greedy)
 
 
-def make_loss(q_network: TensorDictModule, env: EnvBase, loss: LossConfig | None = None) -> DQNLoss:
+def make_loss(q_network: TensorDictModule, env: EnvBase, loss: LossConfig) -> DQNLoss:
     """``DQNLoss`` with a target network and a TD(0) value estimator of discount ``gamma``."""
-    loss = loss or LossConfig()
     module = DQNLoss(
         value_network=q_network,
         loss_function=loss.loss_function.value,
@@ -272,20 +268,16 @@ def make_loss(q_network: TensorDictModule, env: EnvBase, loss: LossConfig | None
     return module
 
 
-def make_target_updater(loss_module: DQNLoss, target: TargetConfig | None = None):
+def make_target_updater(loss_module: DQNLoss, target: TargetConfig):
     """``SoftUpdate(tau=...)`` (Polyak averaging every update) or ``HardUpdate`` (copy every
     ``period`` updates), from ``target.kind``."""
-    target = target or TargetConfig()
     if target.kind is TargetKind.soft:
         return SoftUpdate(loss_module, tau=target.tau)
     return HardUpdate(loss_module, value_network_update_interval=target.period)
 
 
-def make_optimizer(
-    loss_module: nn.Module, optim: OptimConfig | None = None
-) -> torch.optim.Optimizer:
+def make_optimizer(loss_module: nn.Module, optim: OptimConfig) -> torch.optim.Optimizer:
     """Adam over the trainable parameters of the loss (the target network is not trainable)."""
-    optim = optim or OptimConfig()
     return torch.optim.Adam(
         [p for p in loss_module.parameters() if p.requires_grad],
         lr=optim.lr,
@@ -293,12 +285,9 @@ def make_optimizer(
     )
 
 
-def make_buffer(
-    buffer: BufferConfig | None = None, scratch_dir: str | Path | None = None
-) -> ReplayBuffer:
+def make_buffer(buffer: BufferConfig, scratch_dir: str | Path | None = None) -> ReplayBuffer:
     """Uniform replay of ``size`` transitions in ``LazyTensorStorage`` (RAM) or, with
     ``storage: memmap``, ``LazyMemmapStorage`` (memory-mapped files under ``scratch_dir``)."""
-    buffer = buffer or BufferConfig()
     if buffer.storage is Storage.tensor:
         storage = LazyTensorStorage(buffer.size)
     else:

@@ -85,9 +85,12 @@ class Checkpoints:
             with tempfile.NamedTemporaryFile(dir=self.directory, prefix=".probe-"):
                 pass
         except OSError as error:
-            raise CheckpointsError(
-                f"cannot write checkpoints to {self.directory}: {error.strerror or error}"
-            ) from error
+            raise self.unwritable(error) from error
+
+    def unwritable(self, error: OSError) -> CheckpointsError:
+        return CheckpointsError(
+            f"cannot write checkpoints to {self.directory}: {error.strerror or error}"
+        )
 
     def save(self, checkpoint: Checkpoint, iteration: int) -> Path:
         """Write ``checkpoint`` as iteration ``iteration``'s, on disk when this returns (a failed
@@ -101,9 +104,7 @@ class Checkpoints:
                 finally:
                     os.close(descriptor)
         except OSError as error:
-            raise CheckpointsError(
-                f"cannot write checkpoints to {self.directory}: {error.strerror or error}"
-            ) from error
+            raise self.unwritable(error) from error
         return path
 
     def newest_readable(self) -> Path:

@@ -37,6 +37,15 @@ def train_seed(seed: int, iteration: int) -> int:
     return seed * SEEDS_PER_RUN + iteration
 
 
+def check_seeds(seed: int, iterations: int, eval_seeds: list[int]) -> None:
+    """ValueError if one of ``eval_seeds`` is also the seed of a training batch 0..iterations-1
+    of a run with ``seed``."""
+    first, last = train_seed(seed, 0), train_seed(seed, max(iterations - 1, 0))
+    clash = [s for s in eval_seeds if first <= s <= last]
+    if clash:
+        raise ValueError(f"eval.seeds {clash[:3]} are also training seeds (seed * 1e6 + i)")
+
+
 def held_out_seeds(n: int) -> list[int]:
     """The first ``n`` held-out evaluation seeds."""
     return list(range(HELD_OUT_START, HELD_OUT_START + n))
@@ -251,10 +260,7 @@ class TrainConfig:
         integer("threads", self.threads, 1)
         if self.resume not in (None, True, False) and not isinstance(self.resume, str):
             raise ValueError(f"resume must be true, false or a run directory, got {self.resume!r}")
-        first, last = train_seed(self.seed, 0), train_seed(self.seed, self.iterations - 1)
-        clash = [s for s in self.eval.seeds if first <= s <= last]
-        if clash:
-            raise ValueError(f"eval.seeds {clash[:3]} are also training seeds (seed * 1e6 + i)")
+        check_seeds(self.seed, self.iterations, self.eval.seeds)
 
 
 @dataclass

@@ -13,7 +13,7 @@ Run it on the leader inside ``with coordinator`` when the env drives a distribut
     with coordinator:
         if coordinator.is_leader():
             dojo = Dojo(make_q_network(env), env, log_dir="runs/heat")
-            dojo.train(200)
+            dojo.train()
 
 Reproducibility: every collection batch starts from a reset of the env seeded with
 :func:`physicsrl.config.train_seed` (``reset_at_each_iter``), and checkpoints hold the weights,
@@ -29,7 +29,7 @@ import math
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
@@ -43,14 +43,7 @@ from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, CheckpointsError, State
-from physicsrl.config import (
-    CheckpointConfig,
-    CollectorConfig,
-    Evaluation,
-    LossConfig,
-    OptimConfig,
-    train_seed,
-)
+from physicsrl.config import TrainConfig, check_seeds, train_seed
 from physicsrl.evaluation import mean_metrics, run_episodes, write_csv
 
 __all__ = ["Dojo", "Counters", "NonFiniteTraining", "charge_actions", "n_step_transitions"]
@@ -110,117 +103,72 @@ def charge_actions(data: TensorDictBase, costs: torch.Tensor) -> TensorDictBase:
 class Dojo:
     """DQN training pipeline: collect, store, learn, evaluate, log, checkpoint.
 
-    Defaults are those of :mod:`physicsrl.config`.
+    Every setting comes from ``config`` (:class:`~physicsrl.config.TrainConfig`, default: its
+    defaults), and every TorchRL object but the Q-network is built from it by
+    :mod:`physicsrl.builders`: double-DQN ``DQNLoss``, its target updater, Adam, the replay
+    buffer and the annealed ``EGreedyModule``. The sections used: ``collector`` (frames per
+    batch, reset at each batch), ``optim`` (updates per batch, ``learning_starts`` frames
+    before the first, when the Q-network's ``Normalizer`` is fitted to the stored data,
+    ``grad_clip``), ``loss`` (``n_steps``: :func:`n_step_transitions`; ``action_costs``: a
+    training-only penalty per action, :func:`charge_actions`, never in the returns logged or
+    evaluated), ``eval`` (every so many iterations, on one episode per held-out seed),
+    ``checkpoint``, ``logger`` and ``seed`` (batch ``i`` resets the env with
+    :func:`~physicsrl.config.train_seed`).
 
     Parameters
     ----------
     q_network:
-        A greedy Q-value actor (``QValueActor``) reading the env keys in its ``in_keys``.
+        A greedy Q-value actor (``QValueActor``) reading the env keys in its ``in_keys``
+        (:func:`~physicsrl.builders.make_q_network`).
     env:
         A TorchRL env with a discrete action spec. Stepped only from the calling rank.
-    optimizer, loss, target_updater, replay_buffer, exploration:
-        TorchRL objects; ``None`` builds the defaults of :mod:`physicsrl.builders` (Adam,
-        double-DQN ``DQNLoss`` with gamma 0.99, ``SoftUpdate``, ``LazyTensorStorage`` buffer,
-        annealed ``EGreedyModule``).
-    frames_per_batch:
-        Env steps per collection batch (one iteration).
-    updates_per_batch:
-        Gradient steps per iteration once ``learning_starts`` frames are stored.
-    learning_starts:
-        Frames collected (with the exploration policy) before learning starts; at that point
-        the Q-network's ``Normalizer`` (if any) is fitted to the stored observations.
-    grad_clip:
-        Max gradient norm (``None``: no clipping).
-    n_steps:
-        Learn from n-step transitions (:func:`n_step_transitions`; 1: one-step TD).
-    action_costs:
-        Cost of each action by index, subtracted from the rewards stored for learning and
-        not from the returns logged or evaluated (:func:`charge_actions`): a training-only
-        penalty, e.g. on shocks the task's own cost makes too cheap to learn apart from noise.
-    reset_at_each_iter:
-        Start every batch from a fresh episode seeded by :meth:`train_seed` (exact resume).
-    seed:
-        Training seed: batch ``i`` resets the env with :func:`~physicsrl.config.train_seed`.
-    eval_every, eval_seeds:
-        Evaluate the greedy policy every ``eval_every`` iterations (0: only at the end) on
-        one episode per held-out seed.
+    config:
+        The training config.
     log_dir:
-        Run directory: TensorBoard events (``tensorboard/``), ``eval.csv`` and checkpoints
-        (``checkpoints/``). ``None``: no files.
-    tensorboard:
-        Write TensorBoard events into ``log_dir``: training scalars by iteration, and each
-        evaluation metric against iterations (``eval/``), environment steps
-        (``eval_by_env_steps/``), training wall-clock seconds (``eval_by_wall_s/``) and
-        core-seconds (``eval_by_core_s/``: wall seconds x ``cores``).
-    checkpoint_every, keep_checkpoints:
-        Checkpoint every so many iterations (0: only at the end or on a stop request).
+        Run directory: TensorBoard events (``tensorboard/``: training scalars by iteration,
+        and each evaluation metric against iterations, environment steps, training wall-clock
+        seconds and core-seconds), ``eval.csv``, checkpoints (``checkpoints/``) and a
+        memory-mapped buffer (``buffer/``). ``None``: no files.
     checkpoint_extra:
         Saved with every checkpoint under ``"extra"`` (``physicsrl-train``: the run's config).
     coordinator:
         The env's :class:`~physicsrl.coordinated.Coordinator`: time spent sending calls to the
         followers is reported as coordination time.
-    progress:
-        Show a tqdm progress bar (with ETA).
     action_counts:
         ``{"shocks": 1}``: evaluation also reports how often action 1 was taken.
-    cores:
-        The cores (MPI ranks) the job uses, for the core-seconds axis.
+    environments, cores:
+        The environments behind ``env`` (``collector.frames_per_env`` x N frames per batch)
+        and the cores (MPI ranks) the job uses, for the core-seconds axis.
     """
 
     def __init__(
         self,
         q_network: torch.nn.Module,
         env: EnvBase,
+        config: TrainConfig | None = None,
         *,
-        optimizer: torch.optim.Optimizer | None = None,
-        loss: torch.nn.Module | None = None,
-        target_updater: Any = None,
-        replay_buffer: Any = None,
-        exploration: torch.nn.Module | None = None,
-        frames_per_batch: int = CollectorConfig.frames_per_batch,
-        updates_per_batch: int = OptimConfig.updates_per_batch,
-        learning_starts: int = OptimConfig.learning_starts,
-        grad_clip: float | None = OptimConfig.grad_clip,
-        n_steps: int = LossConfig.n_steps,
-        action_costs: Sequence[float] = (),
-        reset_at_each_iter: bool = CollectorConfig.reset_at_each_iter,
-        seed: int = 0,
-        eval_every: int = Evaluation.every,
-        eval_seeds: Iterable[int] | None = None,
         log_dir: str | Path | None = None,
-        tensorboard: bool = True,
-        checkpoint_every: int = 0,
-        keep_checkpoints: int = CheckpointConfig.keep,
         checkpoint_extra: Mapping | None = None,
         coordinator: Any = None,
-        progress: bool = True,
         action_counts: Mapping[str, int] | None = None,
+        environments: int = 1,
         cores: int = 1,
     ):
-        self.q_network = q_network
+        self.config = config = config or TrainConfig()
         self.env = env
-        self.loss = loss if loss is not None else builders.make_loss(q_network, env)
-        self.target_updater = _given(target_updater, builders.make_target_updater, self.loss)
-        self.optimizer = _given(optimizer, builders.make_optimizer, self.loss)
-        self.replay_buffer = _given(replay_buffer, builders.make_buffer)
-        self.exploration = _given(exploration, builders.make_exploration, q_network, env)
-        self.frames_per_batch = int(frames_per_batch)
-        self.updates_per_batch = int(updates_per_batch)
-        self.learning_starts = int(learning_starts)
-        self.grad_clip = grad_clip
-        self.n_steps = int(n_steps)
-        self.action_costs = torch.tensor([float(c) for c in action_costs])
-        self.reset_at_each_iter = bool(reset_at_each_iter)
-        self.seed = int(seed)
-        self.eval_every = int(eval_every)
-        self.eval_seeds = [
-            int(s) for s in (Evaluation().seeds if eval_seeds is None else eval_seeds)
-        ]
+        self.q_network = q_network
+        self.loss = builders.make_loss(self.q_network, env, config.loss)
+        self.target_updater = builders.make_target_updater(self.loss, config.loss.target)
+        self.optimizer = builders.make_optimizer(self.loss, config.optim)
         self.log_dir = None if log_dir is None else Path(log_dir)
-        self.tensorboard = tensorboard
-        self.checkpoint_every = int(checkpoint_every)
+        scratch = None if self.log_dir is None else self.log_dir / "buffer"
+        self.replay_buffer = builders.make_buffer(config.buffer, scratch)
+        self.exploration = builders.make_exploration(self.q_network, env, config.agent.exploration)
+        self.frames_per_batch = config.collector.frames(environments)
+        self.action_costs = torch.tensor([float(c) for c in config.loss.action_costs])
+        self.eval_seeds = [int(s) for s in config.eval.seeds]
         self.checkpoint_extra = dict(checkpoint_extra or {})
-        self.progress = progress
+        self.coordinator = coordinator
         self.action_counts = dict(action_counts or {})
         self.cores = cores
         self.counters = Counters()
@@ -228,7 +176,7 @@ class Dojo:
         self.checkpoints = (
             None
             if self.log_dir is None
-            else Checkpoints(self.log_dir / "checkpoints", keep_checkpoints)
+            else Checkpoints(self.log_dir / "checkpoints", config.checkpoint.keep)
         )
         self.writer = None
         self._stop_reason: str | None = None
@@ -236,23 +184,26 @@ class Dojo:
         self._checkpoint_failed = False
         self._pending_rng: dict | None = None
         self._collector: Collector | None = None
-        self.coordinator = coordinator
 
     # the loop -----------------------------------------------------------------------------
-    def train(self, iterations: int, handle_signals: bool = True) -> dict:
-        """Train until ``iterations`` iterations have run in total (restored ones included).
+    def train(self, iterations: int | None = None, handle_signals: bool = True) -> dict:
+        """Train until ``iterations`` (default: ``config.iterations``) iterations have run in
+        total (restored ones included).
 
         Stops early, after a checkpoint, on SIGINT/SIGTERM (when called from the main thread
         with ``handle_signals``) or :meth:`request_stop`. Returns :meth:`summary`.
         """
-        self._check_seeds(iterations)
+        config = self.config
+        iterations = config.iterations if iterations is None else iterations
+        if config.collector.reset_at_each_iter:
+            check_seeds(config.seed, iterations, self.eval_seeds)
         self._open_logs()
         collector = self._collector = Collector(
             TransformedEnv(self.env, RewardSum()),  # each episode's return so far
             self.exploration,
             frames_per_batch=self.frames_per_batch,
             total_frames=-1,  # the loop counts iterations itself (and never closes the env)
-            reset_at_each_iter=self.reset_at_each_iter,
+            reset_at_each_iter=config.collector.reset_at_each_iter,
             pre_collect_hook=self._seed_next_batch,
             auto_register_policy_transforms=False,
         )
@@ -275,23 +226,23 @@ class Dojo:
                 self.exploration[-1].step(data.numel())  # anneal epsilon
                 if len(self.action_costs):
                     data = charge_actions(data, self.action_costs)
-                if self.n_steps > 1:
+                if config.loss.n_steps > 1:
                     gamma = float(self.loss.value_estimator.gamma)
-                    data = n_step_transitions(data, self.n_steps, gamma)
+                    data = n_step_transitions(data, config.loss.n_steps, gamma)
                 self.replay_buffer.extend(data.reshape(-1))
 
                 # 2. learn from replayed transitions
                 started = time.perf_counter()
-                losses = self._learn() if self.counters.frames >= self.learning_starts else []
+                learning = self.counters.frames >= config.optim.learning_starts
+                losses = self._learn() if learning else []
                 self._add_time("learner", time.perf_counter() - started)
                 self.counters.iteration += 1
 
                 # 3. evaluate, log, checkpoint
-                evaluation = None
-                if self.eval_every and self.counters.iteration % self.eval_every == 0:
-                    evaluation = self.evaluate()
-                self._log_iteration(data.numel(), collect_s, losses, returns, evaluation)
-                if self.checkpoint_every and self.counters.iteration % self.checkpoint_every == 0:
+                if self._due(config.eval.every):
+                    self.evaluate()
+                self._log_iteration(data.numel(), collect_s, losses, returns)
+                if self._due(config.checkpoint.every):
                     self.save_checkpoint()
                 if bar is not None:
                     bar.update(1)
@@ -313,9 +264,13 @@ class Dojo:
         return self.summary()
 
     # the steps ----------------------------------------------------------------------------
+    def _due(self, every: int) -> bool:
+        """Whether the iteration just done is a multiple of ``every`` (0: never)."""
+        return every > 0 and self.counters.iteration % every == 0
+
     def _seed_next_batch(self) -> None:
-        if self.reset_at_each_iter:
-            self.env.set_seed(train_seed(self.seed, self.counters.iteration))
+        if self.config.collector.reset_at_each_iter:
+            self.env.set_seed(train_seed(self.config.seed, self.counters.iteration))
 
     def _record_batch(self, data: TensorDictBase) -> list[float]:
         """Count frames and episodes; return the returns of the episodes finished here (the
@@ -340,13 +295,13 @@ class Dojo:
                 normalizer.scale.tolist(),
             )
         losses = []
-        for _ in range(self.updates_per_batch):
+        for _ in range(self.config.optim.updates_per_batch):
             batch = self.replay_buffer.sample()
             loss = self.loss(batch)["loss"]
             self.optimizer.zero_grad()
             loss.backward()
-            if self.grad_clip:
-                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.grad_clip)
+            if self.config.optim.grad_clip:
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.config.optim.grad_clip)
             self.optimizer.step()
             self.target_updater.step()
             self.counters.updates += 1
@@ -380,7 +335,7 @@ class Dojo:
             run_episodes(self.env, policy, seeds or self.eval_seeds, self.action_counts)
         )
         self._add_time("evaluation", time.perf_counter() - started)
-        if self._collector is not None and not self.reset_at_each_iter:
+        if self._collector is not None and not self.config.collector.reset_at_each_iter:
             self._collector.reset()  # evaluation moved the env away from the batch in flight
         if record and policy is self.q_network:
             row = {
@@ -491,7 +446,7 @@ class Dojo:
         if self.log_dir is None or self.writer is not None:
             return
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        if not self.tensorboard:
+        if not self.config.logger.tensorboard:
             return
         from torch.utils.tensorboard import SummaryWriter
 
@@ -500,7 +455,7 @@ class Dojo:
             str(self.log_dir / "tensorboard"), purge_step=self.counters.iteration + 1
         )
 
-    def _log_iteration(self, frames, collect_s, losses, returns, evaluation) -> None:
+    def _log_iteration(self, frames, collect_s, losses, returns) -> None:
         if self.writer is None:
             return
         step, scalar = self.counters.iteration, self.writer.add_scalar
@@ -534,7 +489,7 @@ class Dojo:
             write_csv(self.log_dir / "eval.csv", self.history)
 
     def _progress_bar(self, iterations: int):
-        if not self.progress:
+        if not self.config.logger.progress:
             return None
         from tqdm import tqdm
 
@@ -581,15 +536,3 @@ class Dojo:
                 signal.signal(s, h)
 
         return restore
-
-    def _check_seeds(self, iterations: int) -> None:
-        first, last = train_seed(self.seed, 0), train_seed(self.seed, max(iterations - 1, 0))
-        clash = [s for s in self.eval_seeds if first <= s <= last]
-        if clash and self.reset_at_each_iter:
-            raise ValueError(f"eval seeds {clash[:3]} are also training seeds: choose others")
-
-
-def _given(value, default, *args):
-    """``value``, or ``default(*args)`` when it is None (not ``or``: an empty replay buffer has
-    length 0 and is falsy)."""
-    return value if value is not None else default(*args)

@@ -95,37 +95,16 @@ def task_of(env) -> Task | type[Task] | None:
 
 def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None = None) -> Dojo:
     """The Dojo of ``config`` for ``env`` (leader only)."""
-    q_network = builders.make_q_network(env, config.agent.network)
-    loss = builders.make_loss(q_network, env, config.loss)
     task = task_of(env)
     return Dojo(
-        q_network,
+        builders.make_q_network(env, config.agent.network),
         env,
-        optimizer=builders.make_optimizer(loss, config.optim),
-        loss=loss,
-        target_updater=builders.make_target_updater(loss, config.loss.target),
-        replay_buffer=builders.make_buffer(
-            config.buffer, None if log_dir is None else log_dir / "buffer"
-        ),
-        exploration=builders.make_exploration(q_network, env, config.agent.exploration),
-        frames_per_batch=config.collector.frames(n_environments(env)),
-        reset_at_each_iter=config.collector.reset_at_each_iter,
-        updates_per_batch=config.optim.updates_per_batch,
-        learning_starts=config.optim.learning_starts,
-        grad_clip=config.optim.grad_clip or None,
-        n_steps=config.loss.n_steps,
-        action_costs=config.loss.action_costs,
-        seed=config.seed,
-        eval_every=config.eval.every,
-        eval_seeds=config.eval.seeds,
+        config,
         log_dir=log_dir,
-        tensorboard=config.logger.tensorboard,
-        checkpoint_every=config.checkpoint.every,
-        keep_checkpoints=config.checkpoint.keep,
         checkpoint_extra={"config": as_dict(config), "environments": n_environments(env)},
         coordinator=coordinator,
-        progress=config.logger.progress,
         action_counts=task.action_counts if task else {},
+        environments=n_environments(env),
         cores=MPI.COMM_WORLD.size,
     )
 

@@ -165,20 +165,15 @@ def test_read_returns_the_states_the_dojo_saved(tmp_path):
     sys.path.insert(0, str(TOY.parent))
     from train_toy_env import ToyChainEnv
 
-    from physicsrl import builders
-    from physicsrl.config import Network
+    from physicsrl.builders import make_q_network
+    from physicsrl.config import LoggerConfig, Network, TrainConfig
     from physicsrl.coordinated import Coordinator
     from physicsrl.dojo import Dojo
 
     env = ToyChainEnv(Coordinator(), length=3)
-    dojo = Dojo(
-        builders.make_q_network(env, Network(hidden=[4])),
-        env,
-        log_dir=tmp_path,
-        tensorboard=False,
-        checkpoint_extra={"config": {"seed": 7}},
-        progress=False,
-    )
+    config = TrainConfig(logger=LoggerConfig(tensorboard=False, progress=False))
+    q_network = make_q_network(env, Network(hidden=[4]))
+    dojo = Dojo(q_network, env, config, log_dir=tmp_path, checkpoint_extra={"config": {"seed": 7}})
     path = dojo.save_checkpoint()
     state = read(path)
     assert state["extra"] == {"config": {"seed": 7}} and state["history"] == []

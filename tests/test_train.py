@@ -82,34 +82,31 @@ def test_dojo_learns_a_known_optimum(n_steps, action_costs, optimum):
     sys.path.insert(0, str(TOY.parent))
     from train_toy_env import ToyChainEnv
 
-    from physicsrl import builders
-    from physicsrl.config import BufferConfig, Exploration, Network
+    from physicsrl import config as c
+    from physicsrl.builders import make_q_network
     from physicsrl.coordinated import Coordinator
     from physicsrl.dojo import Dojo
 
     torch.manual_seed(0)
     coordinator = Coordinator()
     env = ToyChainEnv(coordinator, length=3)
+    config = c.TrainConfig(
+        agent=c.DQNAgent(
+            network=c.Network(hidden=[32, 32]), exploration=c.Exploration(annealing_frames=500)
+        ),
+        buffer=c.BufferConfig(size=500, batch_size=64),
+        collector=c.CollectorConfig(frames_per_batch=16),
+        optim=c.OptimConfig(learning_starts=64),
+        loss=c.LossConfig(n_steps=n_steps, action_costs=list(action_costs)),
+        eval=c.Evaluation(every=0),
+        logger=c.LoggerConfig(progress=False),
+    )
     with coordinator:
-        q_network = builders.make_q_network(env, Network(hidden=[32, 32]))
-        buffer = builders.make_buffer(BufferConfig(size=500, batch_size=64))
-        dojo = Dojo(
-            q_network,
-            env,
-            replay_buffer=buffer,
-            exploration=builders.make_exploration(
-                q_network, env, Exploration(annealing_frames=500)
-            ),
-            frames_per_batch=16,
-            learning_starts=64,
-            n_steps=n_steps,
-            action_costs=action_costs,
-            eval_every=0,
-            progress=False,
-        )
+        dojo = Dojo(make_q_network(env, config.agent.network), env, config)
         summary = dojo.train(60)
     assert summary["iteration"] == 60 and summary["frames"] == 960
-    assert dojo.replay_buffer is buffer and len(buffer) == 500  # the given capacity is kept
+    buffer = dojo.replay_buffer
+    assert len(buffer) == 500  # the configured capacity
     assert summary["eval"]["return"] == pytest.approx(optimum)
     assert summary["eval"]["success"] == optimum
     stored = buffer[:]
@@ -498,23 +495,15 @@ def test_bad_values_are_refused_by_the_typed_config(capsys, tmp_path, command, o
 
 def test_defaults_are_defined_once():
     """The composed train config equals the typed config's defaults (the YAML sets none but
-    the groups), and the Dojo's defaults are the config's."""
-    import inspect
-
+    the groups)."""
     from physicsrl.cli.command import compose
     from physicsrl.config import TrainConfig, as_dict
-    from physicsrl.dojo import Dojo
 
     composed = as_dict(compose("train", []))
     defaults = as_dict(TrainConfig())
     for group in ("env", "observation", "reward"):  # the task's groups: their own YAML
         composed.pop(group), defaults.pop(group)
     assert composed == defaults
-    signature = inspect.signature(Dojo).parameters
-    config = TrainConfig()
-    assert signature["frames_per_batch"].default == config.collector.frames_per_batch
-    assert signature["updates_per_batch"].default == config.optim.updates_per_batch
-    assert signature["n_steps"].default == config.loss.n_steps
 
 
 def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):

@@ -10,7 +10,6 @@ directory.
 
 from __future__ import annotations
 
-import csv
 import importlib
 import json
 import math
@@ -74,14 +73,13 @@ def check(cfg, name: str) -> None:
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
     """Print the table and goals, and write them beside the command line (leader only)."""
+    from physicsrl.evaluation import write_csv  # imports torch: only once a benchmark has run
+
     print(format_table(rows))
     for text, met in goals:
         print(f"goal {'met' if met else 'MISSED'}: {text}")
     directory = output_dir()
-    with open(directory / f"{name}.csv", "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(directory / f"{name}.csv", rows)
     command = shlex.join(["physicsrl-bench", name, *sys.argv[1:]])
     record = {"command": command, "rows": rows, "goals": [{"goal": t, "met": m} for t, m in goals]}
     (directory / f"{name}.json").write_text(json.dumps(record, indent=2))

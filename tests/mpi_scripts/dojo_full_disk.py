@@ -11,8 +11,8 @@ from pathlib import Path
 import torch
 from train_toy_env import ToyChainEnv
 
-from physicsrl import builders
-from physicsrl.config import BufferConfig, Network
+from physicsrl import config as c
+from physicsrl.builders import make_q_network
 from physicsrl.coordinated import Coordinator
 from physicsrl.dojo import Dojo
 
@@ -21,20 +21,15 @@ torch.manual_seed(0)
 coordinator = Coordinator()
 with coordinator:
     env = ToyChainEnv(coordinator, length=3)
-    q_network = builders.make_q_network(env, Network(hidden=[8]))
-    dojo = Dojo(
-        q_network,
-        env,
-        replay_buffer=builders.make_buffer(BufferConfig(size=200, batch_size=16)),
-        frames_per_batch=8,
-        learning_starts=16,
-        updates_per_batch=1,
-        eval_every=0,
-        log_dir=run,
-        tensorboard=False,
-        checkpoint_every=2,
-        progress=False,
+    config = c.TrainConfig(
+        buffer=c.BufferConfig(size=200, batch_size=16),
+        collector=c.CollectorConfig(frames_per_batch=8),
+        optim=c.OptimConfig(learning_starts=16, updates_per_batch=1),
+        eval=c.Evaluation(every=0),
+        logger=c.LoggerConfig(tensorboard=False, progress=False),
+        checkpoint=c.CheckpointConfig(every=2),
     )
+    dojo = Dojo(make_q_network(env, c.Network(hidden=[8])), env, config, log_dir=run)
     dojo.train(4, handle_signals=False)
     half = dojo.checkpoints.latest().stat().st_size // 2
     resource.setrlimit(resource.RLIMIT_FSIZE, (half, resource.RLIM_INFINITY))
