@@ -12,7 +12,8 @@ Run it on the leader inside ``with coordinator`` when the env drives a distribut
     env = make_env(cfg, coordinator)           # every rank, same order
     with coordinator:
         if coordinator.is_leader():
-            dojo = Dojo(make_q_network(env), env, log_dir="runs/heat")
+            config = TrainConfig(iterations=200)  # every other setting: its default
+            dojo = Dojo(make_q_network(env), env, config, log_dir="runs/heat")
             dojo.train()
 
 Reproducibility: every collection batch starts from a reset of the env seeded with
