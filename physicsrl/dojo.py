@@ -30,7 +30,7 @@ import math
 import signal
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
@@ -322,31 +322,23 @@ class Dojo:
             f"training stopped ({kept})"
         )
 
-    def evaluate(
-        self,
-        policy: Callable | None = None,
-        seeds: Sequence[int] | None = None,
-        record: bool = True,
-    ) -> dict:
-        """Average metrics of ``policy`` (default: the greedy Q-network) over ``seeds``
-        (default: the held-out validation seeds); recorded in the history and logs."""
+    def evaluate(self) -> dict:
+        """Average metrics of the greedy Q-network over the held-out seeds (``eval.seeds``),
+        recorded in the history and the logs."""
         started = time.perf_counter()
-        policy = policy or self.q_network
-        metrics = mean_metrics(
-            run_episodes(self.env, policy, seeds or self.eval_seeds, self.action_counts)
-        )
+        rows = run_episodes(self.env, self.q_network, self.eval_seeds, self.action_counts)
+        metrics = mean_metrics(rows)
         self._add_time("evaluation", time.perf_counter() - started)
         if self._collector is not None and not self.config.collector.reset_at_each_iter:
             self._collector.reset()  # evaluation moved the env away from the batch in flight
-        if record and policy is self.q_network:
-            row = {
-                "iteration": self.counters.iteration,
-                "frames": self.counters.frames,
-                "wall_s": round(sum(self.counters.time_s.values()), 3),  # of training, resumes too
-                **metrics,
-            }
-            self.history.append(row)
-            self._log_evaluation(row)
+        row = {
+            "iteration": self.counters.iteration,
+            "frames": self.counters.frames,
+            "wall_s": round(sum(self.counters.time_s.values()), 3),  # of training, resumes too
+            **metrics,
+        }
+        self.history.append(row)
+        self._log_evaluation(row)
         return metrics
 
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -410,14 +402,14 @@ class Dojo:
         if "env" in state:
             self.env.set_rng_state(state["env"])
 
-    def save_checkpoint(self, extra: dict | None = None) -> Path | None:
-        """Checkpoint now (the newest ``keep_checkpoints`` are kept). A directory that cannot be
+    def save_checkpoint(self) -> Path | None:
+        """Checkpoint now (the newest ``checkpoint.keep`` are kept). A directory that cannot be
         written stops training (:meth:`request_stop` naming it) with the older checkpoints
         kept."""
         if self.checkpoints is None or self._checkpoint_failed:
             return None
         started = time.perf_counter()
-        checkpoint = self.checkpoint({**self.checkpoint_extra, **(extra or {})})
+        checkpoint = self.checkpoint(dict(self.checkpoint_extra))
         try:
             path = self.checkpoints.save(checkpoint, self.counters.iteration)
         except CheckpointsError as error:
