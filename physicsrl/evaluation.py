@@ -1,4 +1,5 @@
-"""Evaluation of policies on held-out seeds: one episode runner, one table of means, one CSV.
+"""Evaluation of policies on held-out seeds: one episode runner, one table of means (written
+by :mod:`physicsrl.tables`).
 
 Used by the Dojo's periodic evaluation, the training summary, ``physicsrl-eval`` and
 ``experiments/atp_baselines.py``. A policy is anything TorchRL's ``env.rollout`` accepts (the
@@ -9,9 +10,7 @@ deterministic exploration mode from the env seeded with its seed. Leader only, i
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Callable, Iterable, Mapping
-from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
@@ -120,11 +119,3 @@ def compare(
         for name in policies
     ]
     return per_seed, means
-
-
-def write_csv(path: str | Path, rows: list[dict]) -> None:
-    """``rows`` as CSV, the columns in order of first appearance."""
-    with open(path, "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
-        writer.writeheader()
-        writer.writerows(rows)

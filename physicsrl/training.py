@@ -29,7 +29,6 @@ from mpi4py import MPI
 
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, find_run
-from physicsrl.cli.bench import format_table
 from physicsrl.config import TrainConfig, as_dict, typed
 from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.groups import environments
@@ -37,6 +36,7 @@ from physicsrl.envs.members import Members
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
 from physicsrl.launch import output_dir
+from physicsrl.tables import format_table, rounded
 
 log = logging.getLogger("physicsrl.train")
 
@@ -203,11 +203,6 @@ def warn_differences(old: dict, new: dict, prefix: str = "") -> None:
             warn_differences(a, b, f"{name}.")
         elif a != b:
             log.warning("resumed with %s = %r (the checkpoint's run had %r)", name, b, a)
-
-
-def rounded(rows: list[dict]) -> list[dict]:
-    """``rows`` with floats to 3 decimals, for :func:`~physicsrl.cli.bench.format_table`."""
-    return [{k: f"{v:.3f}" if isinstance(v, float) else v for k, v in row.items()} for row in rows]
 
 
 def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task | None) -> str:

@@ -18,6 +18,7 @@ import sys
 
 from physicsrl.bench import SETTINGS
 from physicsrl.launch import output_dir, relaunch, run_hydra
+from physicsrl.tables import format_table, write_csv
 
 BENCHMARKS = {
     "ping": "cost of one parallel call (report section 3.5)",
@@ -29,14 +30,6 @@ BENCHMARKS = {
 USAGE = "usage: physicsrl-bench NAME [key=value ...] [mpi.ranks=N] [--help | --cfg job]\n\n" + (
     "\n".join(f"  {name:6s} {what}" for name, what in BENCHMARKS.items())
 )
-
-
-def format_table(rows: list[dict]) -> str:
-    columns = list(dict.fromkeys(key for row in rows for key in row))
-    cells = [columns] + [[str(row.get(column, "")) for column in columns] for row in rows]
-    widths = [max(len(line[i]) for line in cells) for i in range(len(columns))]
-    lines = ("  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in cells)
-    return "\n".join(lines)
 
 
 def check_settings(cfg, settings: dict[str, tuple[type, float | None]]) -> None:
@@ -73,8 +66,6 @@ def check(cfg, name: str) -> None:
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
     """Print the table and goals, and write them beside the command line (leader only)."""
-    from physicsrl.evaluation import write_csv  # imports torch: only once a benchmark has run
-
     print(format_table(rows))
     for text, met in goals:
         print(f"goal {'met' if met else 'MISSED'}: {text}")

@@ -131,13 +131,13 @@ def field_recorder(env, coordinator, path: Path):
 
 def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=None) -> None:
     from physicsrl import learning_curve
-    from physicsrl.cli.bench import format_table
     from physicsrl.config import held_out_seeds
     from physicsrl.envs.env import PhysicsEnv
     from physicsrl.envs.groups import GroupedEnv
-    from physicsrl.evaluation import compare, write_csv
+    from physicsrl.evaluation import compare
     from physicsrl.fem.output import render_series
-    from physicsrl.training import baselines, make_dojo, rounded
+    from physicsrl.tables import format_table, rounded, write_csv
+    from physicsrl.training import baselines, make_dojo
 
     dojo = make_dojo(train_cfg, env)
     dojo.q_network.load_state_dict(state["q_network"])

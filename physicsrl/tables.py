@@ -1,0 +1,33 @@
+"""Tables of results: rows (dicts with the same keys) as aligned text and as CSV.
+
+Plain Python, no torch or MPI: the command line prints and writes tables on the leader only,
+after or without the simulation.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+
+def format_table(rows: list[dict]) -> str:
+    """``rows`` as text: a header of the columns in order of first appearance, then one line
+    per row, each column left-aligned to its widest cell."""
+    columns = list(dict.fromkeys(key for row in rows for key in row))
+    cells = [columns] + [[str(row.get(column, "")) for column in columns] for row in rows]
+    widths = [max(len(line[i]) for line in cells) for i in range(len(columns))]
+    lines = ("  ".join(c.ljust(w) for c, w in zip(line, widths, strict=True)) for line in cells)
+    return "\n".join(lines)
+
+
+def rounded(rows: list[dict]) -> list[dict]:
+    """``rows`` with floats to 3 decimals, for :func:`format_table`."""
+    return [{k: f"{v:.3f}" if isinstance(v, float) else v for k, v in row.items()} for row in rows]
+
+
+def write_csv(path: str | Path, rows: list[dict]) -> None:
+    """``rows`` as CSV, the columns in order of first appearance."""
+    with open(path, "w", newline="") as stream:
+        writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
+        writer.writeheader()
+        writer.writerows(rows)
