@@ -62,7 +62,6 @@ class ThermostatTask(Task):
     """Simulator side: one parallel call per reset and per step, on every rank."""
 
     Config, n_actions, events = Thermostat, 2, frozenset({"mean"})
-    pairs = ("quadrants", "keep_target")  # the observation and reward that go with it
     action_counts = {"heating": 1}  # reported per evaluated episode
 
     def baselines(self, env, seeds, seed):

@@ -179,12 +179,10 @@ def checkpoint_file(tmp_path_factory) -> Path:
 def test_a_bad_command_line_is_one_line_naming_the_key(
     capsys, checkpoint_file, command, overrides, named
 ):
-    from physicsrl.cli.command import validate_or_exit, with_pairs
+    from physicsrl.cli.command import validate_or_exit
 
     if command == "eval":
         overrides = [f"run={checkpoint_file}", *overrides]
-    if command == "train":
-        overrides = with_pairs(overrides)
     with pytest.raises(SystemExit) as exit_:
         validate_or_exit(command, overrides, check_of(command))
     assert exit_.value.code == 2

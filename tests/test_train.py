@@ -506,6 +506,22 @@ def test_defaults_are_defined_once():
     assert composed == defaults
 
 
+def test_an_env_brings_its_observation_and_reward_unless_chosen():
+    """``env=NAME`` composes with the observation and reward of its YAML's defaults list, in a
+    single run and in each job of a sweep; the command line's choice wins."""
+    from physicsrl.cli.command import compose, sweep_jobs
+
+    def chosen(*overrides):
+        cfg = compose("train", list(overrides))
+        return cfg.observation.name, cfg.reward.name
+
+    assert chosen() == ("quadrants", "heat_stop")
+    assert chosen("env=ms") == chosen("env=ms_resolved") == ("catheter", "atp")
+    assert chosen("env=ms", "observation=quadrants") == ("quadrants", "atp")
+    jobs = sweep_jobs(["env=heat,ms"])
+    assert [chosen(*job) for job in jobs] == [("quadrants", "heat_stop"), ("catheter", "atp")]
+
+
 def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
     """``physicsrl-eval fields=true`` under 2 ranks, on the heat task with a policy that always
     advances (3 decisions of 0.1): the VTX series read back holds u on all 81 nodes at times

@@ -1,6 +1,6 @@
-"""What every ``physicsrl-*`` command does with its command line before running: add the task's
-observation and reward to ``env=NAME``, compose the config, check it on every rank, and turn a
-bad value into one line naming the key (exit status 2, printed by the leader only).
+"""What every ``physicsrl-*`` command does with its command line before running: compose the
+config, check it on every rank, and turn a bad value into one line naming the key (exit status
+2, printed by the leader only).
 
 The config and the tasks are imported inside the functions: they import MPI (through the
 simulators), which must not start before :func:`~physicsrl.launch.relaunch` re-executes the
@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from typing import NoReturn
 
 from omegaconf import OmegaConf
@@ -21,34 +20,6 @@ from omegaconf import OmegaConf
 from physicsrl.launch import refuse, relaunch, run_hydra
 
 MULTIRUN = {"-m", "--multirun"}
-
-
-def with_pairs(overrides: list[str]) -> list[str]:
-    """Add the observation and reward that go with ``env=NAME`` (the task's ``pairs``) unless
-    they are given. Without ``env=`` nothing is added: the defaults list or a preset chooses."""
-    chosen = {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in overrides if "=" in o}
-    if "env" not in chosen:
-        return overrides
-    from physicsrl.envs import TASKS
-    from physicsrl.envs.registry import import_module_of, shipped
-
-    searched = [  # a user's configs first (hydra.searchpath=[file://DIR,...])
-        Path(d.removeprefix("file://")) / "env" / f"{chosen['env']}.yaml"
-        for d in chosen.get("hydra.searchpath", "").strip("[]").split(",")
-        if d.startswith("file://")
-    ]
-    try:
-        found = [p for p in searched if p.is_file()]
-        env = OmegaConf.load(found[0] if found else shipped("env", chosen["env"]))
-        import_module_of("env", env)
-    except (FileNotFoundError, ValueError):
-        return overrides  # composing or checking names the unknown option
-    task = TASKS.classes.get(env.get("name"))
-    pairs = dict(zip(("observation", "reward"), getattr(task, "pairs", None) or (), strict=False))
-    return [
-        *overrides,
-        *(f"{group}={option}" for group, option in pairs.items() if group not in chosen),
-    ]
 
 
 def one_line(error: BaseException) -> str:
@@ -157,15 +128,14 @@ def sweep_jobs(overrides: list[str]) -> list[list[str]]:
         raise ValueError(one_line(error)) from error
 
 
-def main(config_name: str, task: str, check: Callable, pairs: bool = False) -> None:
-    """Launch (``mpi.ranks``), add the task's pairs to ``env=`` (``pairs``), validate (every job
-    of a ``-m`` sweep; not with Hydra's print-only flags), then ``task(cfg)`` on every rank under
-    Hydra (``task``: "module:function")."""
+def main(config_name: str, task: str, check: Callable) -> None:
+    """Launch (``mpi.ranks``), validate (every job of a ``-m`` sweep; not with Hydra's
+    print-only flags), then ``task(cfg)`` on every rank under Hydra (``task``:
+    "module:function")."""
     overrides = sys.argv[1:]
     relaunch(overrides)
     from physicsrl.config import register
 
-    overrides = with_pairs(overrides) if pairs else overrides
     register()
     validate_or_exit(config_name, overrides, check)
 

@@ -1,11 +1,12 @@
 """``physicsrl-train [key=value ...] [mpi.ranks=N]``: DQN training (the Dojo) under Hydra + MPI.
 
 Composes ``conf/train.yaml`` into the typed :class:`~physicsrl.config.TrainConfig`: the task
-groups ``env``, ``observation``, ``reward`` (``env=NAME`` picks the task's observation and
-reward unless given), the ``agent`` group (network and exploration) and sections named after
-the TorchRL objects they configure (``collector``, ``buffer``, ``loss``, ``optim``, ``logger``,
-``checkpoint``, ``eval``). The config is checked on every rank before anything is simulated:
-an unknown key, a wrong type or a bad value exits with status 2 and one line naming the key.
+groups ``env``, ``observation``, ``reward`` (``env=NAME`` picks the observation and reward of
+its YAML's defaults list unless given), the ``agent`` group (network and exploration) and
+sections named after the TorchRL objects they configure (``collector``, ``buffer``, ``loss``,
+``optim``, ``logger``, ``checkpoint``, ``eval``). The config is checked on every rank before
+anything is simulated: an unknown key, a wrong type or a bad value exits with status 2 and one
+line naming the key.
 Then every rank runs :func:`physicsrl.training.train`.
 """
 
@@ -88,7 +89,7 @@ def env_inputs(task, observation) -> dict[str, tuple[int, int]]:
 
 
 def main() -> None:
-    command.main("train", "physicsrl.training:train", check_task, pairs=True)
+    command.main("train", "physicsrl.training:train", check_task)
 
 
 if __name__ == "__main__":

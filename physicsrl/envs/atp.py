@@ -297,7 +297,6 @@ class ATPTask(Task):
     n_actions: ClassVar[int] = 2
     events: ClassVar[frozenset[str]] = frozenset({"shock", "success", "failure", "steps"})
     flags: ClassVar[tuple[str, ...]] = ("success",)
-    pairs = ("catheter", "atp")
     action_counts = {"shocks": 1}
 
     @staticmethod  # the replicas of the torch backend use the class's hooks

@@ -70,7 +70,6 @@ class HeatTask(Task):
     Config: ClassVar[type] = HeatConfig
     n_actions: ClassVar[int] = 2
     events: ClassVar[frozenset[str]] = frozenset({"advanced", "ended", "integral"})
-    pairs = ("quadrants", "heat_stop")
     action_counts = {"advances": 1}
 
     def baselines(self, env, seeds, seed):

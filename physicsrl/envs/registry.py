@@ -98,5 +98,6 @@ def load_config(
 
     groups = {"env": env, "observation": observation, "reward": reward}
     cfg = OmegaConf.create({g: OmegaConf.load(shipped(g, n)) for g, n in groups.items()})
+    cfg.env.pop("defaults", None)  # Hydra's choice of the other groups: given here
     cfg.seed = seed
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))

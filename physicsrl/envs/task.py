@@ -72,16 +72,15 @@ class Task(Coordinated):
     ``flags`` (boolean keys copied into the tensordict), ``max_steps`` and ``observation``, and
     implement :meth:`draw`, :meth:`reset` and :meth:`step` (both ``@parallel``).
 
-    Hooks for the command line, which knows no task by name: ``pairs`` (the observation and
-    reward options that go with the task unless given), ``action_counts`` (metric name -> the
-    action counted per evaluated episode), :meth:`baselines` and :meth:`scores`.
+    Hooks for the command line, which knows no task by name: ``action_counts`` (metric name ->
+    the action counted per evaluated episode), :meth:`baselines` and :meth:`scores`. The
+    observation and reward that go with the task are chosen by its YAML's defaults list.
     """
 
     Config: ClassVar[type]
     n_actions: ClassVar[int]
     events: ClassVar[frozenset[str]]
     flags: ClassVar[tuple[str, ...]] = ()
-    pairs: ClassVar[tuple[str, str] | None] = None
     action_counts: ClassVar[dict[str, int]] = {}
     max_steps: int
 
