@@ -22,7 +22,8 @@ the named open-loop schedules (comma-separated display names).
 ``--open-loop`` evaluates instead every open-loop schedule on all seeds
 (:func:`~physicsrl.envs.baselines.open_loop_schedules`: never, always, one shock at each
 decision, every k-th decision from each offset for k = 2..6) and names the best: the bar of
-closed-loop control. Seeds are the held-out evaluation seeds 1000000000, 1000000001, ...
+closed-loop control, and the per-seed hindsight oracle of the schedules (:func:`hindsight`).
+Seeds are the held-out evaluation seeds 1000000000, 1000000001, ...
 
 Writes, on the leader, ``<name>.csv`` (one row per policy: mean return, success rate, mean
 shocks and decisions), ``<name>_per_seed.csv`` (after each policy) and ``<name>.txt`` (the
@@ -115,6 +116,7 @@ def main() -> None:
         if args.open_loop:
             best = max(means, key=lambda row: row["return"])
             print(f"bar (best open-loop schedule by mean return): {best}", flush=True)
+            print(f"per-seed hindsight oracle of these schedules: {hindsight(done)}", flush=True)
 
 
 def previous_rows(stem: Path, settings: dict) -> dict[str, list[dict]]:
@@ -133,6 +135,23 @@ def previous_rows(stem: Path, settings: dict) -> dict[str, list[dict]]:
             {k: v if k == "policy" else number(v) for k, v in row.items()}
         )
     return {k: v for k, v in rows.items() if len(v) == settings["seeds"]}
+
+
+def hindsight(rows: dict[str, list[dict]]) -> dict:
+    """The best policy of ``rows`` (policy -> its per-seed rows) on each seed, chosen with
+    hindsight: the mean return and success of those choices (what the agent's timing could
+    win at most by choosing among these policies per seed; not a policy) and the seeds
+    that no policy ends."""
+    best: dict[int, dict] = {}
+    for row in (row for per_seed in rows.values() for row in per_seed):
+        if row["seed"] not in best or row["return"] > best[row["seed"]]["return"]:
+            best[row["seed"]] = row
+    chosen = list(best.values())
+    return {
+        "return": round(sum(row["return"] for row in chosen) / len(chosen), 3),
+        "success": sum(row["success"] for row in chosen) / len(chosen),
+        "unended": sorted(seed for seed, row in best.items() if not row["success"]),
+    }
 
 
 def number(text: str) -> int | float:

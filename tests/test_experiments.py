@@ -175,6 +175,24 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
     assert record.count("commit ") == 2 and record.count("--resume") == 1
 
 
+def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():
+    """The per-seed hindsight oracle of the timing variant's 46 schedules, from their stored
+    rows: 80% success and mean return 364.15, draws 06, 11, 14 and 17 ended by none (the
+    numbers of experiments/results/README.md)."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from atp_baselines import hindsight, number
+
+    rows: dict[str, list[dict]] = {}
+    table = ROOT / "experiments" / "results" / "atp_timing_open_loop_per_seed.csv"
+    for row in csv.DictReader(table.open()):
+        policy = row.pop("policy")
+        rows.setdefault(policy, []).append({k: number(v) for k, v in row.items()})
+    assert len(rows) == 46
+    oracle = hindsight(rows)
+    assert oracle["success"] == 0.8 and oracle["return"] == 364.15
+    assert oracle["unended"] == [1_000_000_000 + draw for draw in (6, 11, 14, 17)]
+
+
 def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
     """The convergence script on a small grid, resuming a study with one row done (marked):
     that row is kept, and one row per other (policy, seed) is appended, with the scheduled
