@@ -85,9 +85,9 @@ class Checkpoints:
             with tempfile.NamedTemporaryFile(dir=self.directory, prefix=".probe-"):
                 pass
         except OSError as error:
-            raise self.unwritable(error) from error
+            raise self._unwritable(error) from error
 
-    def unwritable(self, error: OSError) -> CheckpointsError:
+    def _unwritable(self, error: OSError) -> CheckpointsError:
         return CheckpointsError(
             f"cannot write checkpoints to {self.directory}: {error.strerror or error}"
         )
@@ -104,7 +104,7 @@ class Checkpoints:
                 finally:
                     os.close(descriptor)
         except OSError as error:
-            raise self.unwritable(error) from error
+            raise self._unwritable(error) from error
         return path
 
     def newest_readable(self) -> Path:

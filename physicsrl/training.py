@@ -95,16 +95,16 @@ def task_of(env) -> Task | type[Task] | None:
 
 def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None = None) -> Dojo:
     """The Dojo of ``config`` for ``env`` (leader only)."""
-    task = task_of(env)
+    task, environments = task_of(env), n_environments(env)
     return Dojo(
         builders.make_q_network(env, config.agent.network),
         env,
         config,
         log_dir=log_dir,
-        checkpoint_extra={"config": as_dict(config), "environments": n_environments(env)},
+        checkpoint_extra={"config": as_dict(config), "environments": environments},
         coordinator=coordinator,
         action_counts=task.action_counts if task else {},
-        environments=n_environments(env),
+        environments=environments,
         cores=MPI.COMM_WORLD.size,
     )
 
