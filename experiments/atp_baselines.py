@@ -48,8 +48,8 @@ from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import atp_baselines, decisions, open_loop_schedules
 from physicsrl.envs.groups import environments
-from physicsrl.evaluation import compare, mean_metrics
-from physicsrl.tables import write_csv
+from physicsrl.evaluation import compare
+from physicsrl.tables import mean_metrics, write_csv
 from physicsrl.training import n_environments
 
 POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order

@@ -45,8 +45,8 @@ from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, CheckpointsError, State
 from physicsrl.config import TrainConfig, check_seeds, train_seed
-from physicsrl.evaluation import mean_metrics, run_episodes
-from physicsrl.tables import write_csv
+from physicsrl.evaluation import run_episodes
+from physicsrl.tables import mean_metrics, write_csv
 
 __all__ = ["Dojo", "Counters", "NonFiniteTraining", "charge_actions", "n_step_transitions"]
 

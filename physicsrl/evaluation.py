@@ -1,5 +1,5 @@
-"""Evaluation of policies on held-out seeds: one episode runner, one table of means (written
-by :mod:`physicsrl.tables`).
+"""Evaluation of policies on held-out seeds: one episode runner, one table of means
+(:func:`physicsrl.tables.mean_metrics`).
 
 Used by the Dojo's periodic evaluation, the training summary, ``physicsrl-eval`` and
 ``experiments/atp_baselines.py``. A policy is anything TorchRL's ``env.rollout`` accepts (the
@@ -18,6 +18,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from physicsrl.envs.members import Members, spread_episodes
+from physicsrl.tables import mean_metrics
 
 STANDARD_KEYS = {"observation", "reward", "done", "terminated", "truncated", "step"}
 MAX_STEPS = 10_000  # a safety bound on episodes of envs that never end
@@ -91,14 +92,6 @@ def run_jobs(
         {"seed": seed, **episode_metrics(rollout, action_counts)}
         for (_, seed), rollout in zip(jobs, rollouts, strict=True)
     ]
-
-
-def mean_metrics(rows: Iterable[Mapping]) -> dict:
-    """The mean of each metric over ``rows`` (a metric missing from a row counts as 0; the
-    ``seed`` and ``policy`` columns are not metrics)."""
-    rows = [{k: v for k, v in row.items() if k not in ("seed", "policy")} for row in rows]
-    keys = dict.fromkeys(k for row in rows for k in row)
-    return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}
 
 
 def compare(

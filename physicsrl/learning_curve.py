@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
+
+from physicsrl.tables import mean_metrics
 
 COSTS = {  # x-axis label -> function of (frames, wall seconds, ranks)
     "environment steps": lambda frames, wall, ranks: frames,
@@ -31,12 +33,21 @@ def curves(rows: Sequence[dict], ranks: int) -> dict[str, list[float]]:
     }
 
 
-def best_rows(paths: Sequence[Path]) -> list[dict]:
-    """The best row (by mean return) of each table (CSV with ``policy`` and ``return``)."""
+def best_rows(paths: Sequence[Path], seeds: Collection[int] | None = None) -> list[dict]:
+    """The best row (by mean return) of each table: a CSV of means (``policy``, ``return``, ...)
+    or of episodes (with a ``seed`` column), whose rows are averaged per policy over ``seeds``
+    (default: all), so that a bar is on the same seeds as the curve it is drawn with."""
     bars = []
     for path in paths:
         with Path(path).open() as stream:
-            bars.append(max(csv.DictReader(stream), key=lambda r: float(r["return"])))
+            rows = list(csv.DictReader(stream))
+        if rows and "seed" in rows[0]:
+            rows = [r for r in rows if seeds is None or int(r["seed"]) in seeds]
+            policies = dict.fromkeys(r["policy"] for r in rows)
+            rows = [
+                {"policy": p, **mean_metrics(r for r in rows if r["policy"] == p)} for p in policies
+            ]
+        bars.append(max(rows, key=lambda r: float(r["return"])))
     return bars
 
 

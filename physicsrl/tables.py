@@ -1,4 +1,4 @@
-"""Tables of results: rows (dicts with the same keys) as aligned text and as CSV.
+"""Tables of results: rows (dicts with the same keys), their means, as aligned text and as CSV.
 
 Plain Python, no torch or MPI: the command line prints and writes tables on the leader only,
 after or without the simulation.
@@ -7,6 +7,7 @@ after or without the simulation.
 from __future__ import annotations
 
 import csv
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 
@@ -31,3 +32,11 @@ def write_csv(path: str | Path, rows: list[dict]) -> None:
         writer = csv.DictWriter(stream, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
         writer.writeheader()
         writer.writerows(rows)
+
+
+def mean_metrics(rows: Iterable[Mapping]) -> dict:
+    """The mean of each metric over ``rows`` (a metric missing from a row counts as 0; the
+    ``seed`` and ``policy`` columns are not metrics)."""
+    rows = [{k: v for k, v in row.items() if k not in ("seed", "policy")} for row in rows]
+    keys = dict.fromkeys(k for row in rows for k in row)
+    return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}

@@ -9,7 +9,8 @@ from torchrl.envs.utils import check_env_specs
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import ATPReward, HeatStop, exact_optimum, load_config, make_env
 from physicsrl.envs.baselines import Constant, HeatOptimal
-from physicsrl.evaluation import mean_metrics, run_episode
+from physicsrl.evaluation import run_episode
+from physicsrl.tables import mean_metrics
 
 SMALL_HEAT = ["env.mesh.cells=16"]
 

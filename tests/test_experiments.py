@@ -249,6 +249,23 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
     assert png.stat().st_size > 10_000
 
 
+def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
+    """A table per seed is averaged per policy over the seeds the run evaluated: the best
+    schedule on two seeds need not be the best on one of them."""
+    from physicsrl import learning_curve as curve
+
+    table = tmp_path / "per_seed.csv"
+    table.write_text(
+        "policy,seed,return,success\n"
+        "single,1000000000,476,1\nsingle,1000000001,-10,0\n"
+        "every 2,1000000000,100,0\nevery 2,1000000001,300,1\n"
+    )
+    best = curve.best_rows([table])[0]
+    assert (best["policy"], best["return"], best["success"]) == ("single", 233.0, 0.5)
+    best = curve.best_rows([table], seeds={1000000001})[0]
+    assert (best["policy"], best["return"], best["success"]) == ("every 2", 300.0, 1.0)
+
+
 @pytest.mark.parametrize(
     "policy, table, seeds",
     [

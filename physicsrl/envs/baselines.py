@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
+from physicsrl.tables import mean_metrics
+
 if TYPE_CHECKING:
     from physicsrl.envs.heat import HeatOptimum
 
@@ -101,7 +103,7 @@ def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | N
     """Try a single shock at every decision (and none) over ``seeds``; return the schedule with
     the best mean return and every schedule's mean (key None: no shock). Snapshot resets make
     the repeated resets of each seed cheap."""
-    from physicsrl.evaluation import mean_metrics, run_episodes  # it imports this package
+    from physicsrl.evaluation import run_episodes  # it imports this package
 
     seeds = list(seeds)
 
