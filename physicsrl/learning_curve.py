@@ -36,14 +36,20 @@ def curves(rows: Sequence[dict], ranks: int) -> dict[str, list[float]]:
 def best_rows(paths: Sequence[Path], seeds: Collection[int] | None = None) -> list[dict]:
     """The best row (by mean return) of each table: a CSV of means (``policy``, ``return``, ...)
     or of episodes (with a ``seed`` column), whose rows are averaged per policy over ``seeds``
-    (default: all), so that a bar is on the same seeds as the curve it is drawn with."""
+    (default: all; ValueError if a policy lacks one), so that a bar is on the same seeds as the
+    curve it is drawn with."""
     bars = []
     for path in paths:
         with Path(path).open() as stream:
             rows = list(csv.DictReader(stream))
         if rows and "seed" in rows[0]:
-            rows = [r for r in rows if seeds is None or int(r["seed"]) in seeds]
             policies = dict.fromkeys(r["policy"] for r in rows)
+            wanted = set(seeds) if seeds is not None else {int(r["seed"]) for r in rows}
+            rows = [r for r in rows if int(r["seed"]) in wanted]
+            for policy in policies:
+                missing = wanted - {int(r["seed"]) for r in rows if r["policy"] == policy}
+                if missing:
+                    raise ValueError(f"{path}: {policy!r} has no row for seeds {sorted(missing)}")
             rows = [
                 {"policy": p, **mean_metrics(r for r in rows if r["policy"] == p)} for p in policies
             ]

@@ -264,6 +264,8 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
     assert (best["policy"], best["return"], best["success"]) == ("single", 233.0, 0.5)
     best = curve.best_rows([table], seeds={1000000001})[0]
     assert (best["policy"], best["return"], best["success"]) == ("every 2", 300.0, 1.0)
+    with pytest.raises(ValueError, match="no row for seeds \\[1000000002\\]"):
+        curve.best_rows([table], seeds={1000000001, 1000000002})
 
 
 @pytest.mark.parametrize(
