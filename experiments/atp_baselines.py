@@ -35,7 +35,6 @@ when the settings are the same, and adds its command and commit to ``<name>.txt`
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import shlex
 import subprocess
@@ -49,7 +48,7 @@ from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import atp_baselines, decisions, open_loop_schedules
 from physicsrl.envs.groups import environments
 from physicsrl.evaluation import compare
-from physicsrl.tables import mean_metrics, write_csv
+from physicsrl.tables import mean_metrics, read_per_policy, write_csv
 from physicsrl.training import n_environments
 
 POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order
@@ -129,11 +128,7 @@ def previous_rows(stem: Path, settings: dict) -> dict[str, list[dict]]:
     if json.loads(line.removeprefix("settings ") or "{}") != settings:
         print(f"error: --resume: {record} was made with other settings ({line})", file=sys.stderr)
         raise SystemExit(2)
-    rows: dict[str, list[dict]] = {}
-    for row in csv.DictReader(table.open()):
-        rows.setdefault(row["policy"], []).append(
-            {k: v if k == "policy" else number(v) for k, v in row.items()}
-        )
+    rows = {p: [{"policy": p, **row} for row in r] for p, r in read_per_policy(table).items()}
     return {k: v for k, v in rows.items() if len(v) == settings["seeds"]}
 
 
@@ -152,14 +147,6 @@ def hindsight(rows: dict[str, list[dict]]) -> dict:
         "success": sum(row["success"] for row in chosen) / len(chosen),
         "unended": sorted(seed for seed, row in best.items() if not row["success"]),
     }
-
-
-def number(text: str) -> int | float:
-    """A CSV cell as the number it was written from."""
-    try:
-        return int(text)
-    except ValueError:
-        return float(text)
 
 
 def rounded(row: dict) -> dict:

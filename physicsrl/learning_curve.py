@@ -15,7 +15,7 @@ import json
 from collections.abc import Collection, Sequence
 from pathlib import Path
 
-from physicsrl.tables import mean_metrics
+from physicsrl.tables import mean_metrics, read_per_policy
 
 COSTS = {  # x-axis label -> function of (frames, wall seconds, ranks)
     "environment steps": lambda frames, wall, ranks: frames,
@@ -40,20 +40,16 @@ def best_rows(paths: Sequence[Path], seeds: Collection[int] | None = None) -> li
     curve it is drawn with."""
     bars = []
     for path in paths:
-        with Path(path).open() as stream:
-            rows = list(csv.DictReader(stream))
-        if rows and "seed" in rows[0]:
-            policies = dict.fromkeys(r["policy"] for r in rows)
-            wanted = set(seeds) if seeds is not None else {int(r["seed"]) for r in rows}
-            rows = [r for r in rows if int(r["seed"]) in wanted]
-            for policy in policies:
-                missing = wanted - {int(r["seed"]) for r in rows if r["policy"] == policy}
+        table = read_per_policy(path)
+        if "seed" in next(iter(table.values()))[0]:
+            wanted = set(seeds or {r["seed"] for rows in table.values() for r in rows})
+            for policy, rows in table.items():
+                missing = wanted - {r["seed"] for r in rows}
                 if missing:
                     raise ValueError(f"{path}: {policy!r} has no row for seeds {sorted(missing)}")
-            rows = [
-                {"policy": p, **mean_metrics(r for r in rows if r["policy"] == p)} for p in policies
-            ]
-        bars.append(max(rows, key=lambda r: float(r["return"])))
+                table[policy] = [mean_metrics(r for r in rows if r["seed"] in wanted)]
+        rows = [{"policy": policy, **rows[0]} for policy, rows in table.items()]
+        bars.append(max(rows, key=lambda r: r["return"]))
     return bars
 
 

@@ -40,3 +40,22 @@ def mean_metrics(rows: Iterable[Mapping]) -> dict:
     rows = [{k: v for k, v in row.items() if k not in ("seed", "policy")} for row in rows]
     keys = dict.fromkeys(k for row in rows for k in row)
     return {k: sum(float(r.get(k, 0.0)) for r in rows) / max(len(rows), 1) for k in keys}
+
+
+def number(text: str) -> int | float:
+    """A CSV cell as the number it was written from."""
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
+
+
+def read_per_policy(path: str | Path) -> dict[str, list[dict]]:
+    """A CSV with a ``policy`` column (e.g. one row per policy and seed) as policy -> its rows,
+    in the order of first appearance, every other cell a number."""
+    rows: dict[str, list[dict]] = {}
+    with open(path, newline="") as stream:
+        for row in csv.DictReader(stream):
+            policy = row.pop("policy")
+            rows.setdefault(policy, []).append({k: number(v) for k, v in row.items()})
+    return rows

@@ -180,13 +180,11 @@ def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():
     rows: 80% success and mean return 364.15, draws 06, 11, 14 and 17 ended by none (the
     numbers of experiments/results/README.md)."""
     sys.path.insert(0, str(ROOT / "experiments"))
-    from atp_baselines import hindsight, number
+    from atp_baselines import hindsight
 
-    rows: dict[str, list[dict]] = {}
-    table = ROOT / "experiments" / "results" / "atp_timing_open_loop_per_seed.csv"
-    for row in csv.DictReader(table.open()):
-        policy = row.pop("policy")
-        rows.setdefault(policy, []).append({k: number(v) for k, v in row.items()})
+    from physicsrl.tables import read_per_policy
+
+    rows = read_per_policy(ROOT / "experiments" / "results" / "atp_timing_open_loop_per_seed.csv")
     assert len(rows) == 46
     oracle = hindsight(rows)
     assert oracle["success"] == 0.8 and oracle["return"] == 364.15
