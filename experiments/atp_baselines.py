@@ -29,7 +29,8 @@ Writes, on the leader, ``<name>.csv`` (one row per policy: mean return, success 
 shocks and decisions), ``<name>_per_seed.csv`` (after each policy) and ``<name>.txt`` (the
 command, commit and settings), where name is ``<experiment>_baselines`` or
 ``<experiment>_open_loop``. ``--resume`` keeps the policies already in ``<name>_per_seed.csv``
-when the settings are the same, and adds its command and commit to ``<name>.txt``.
+when the settings are the same (the held-out seeds' draws included), and adds its command and
+commit to ``<name>.txt``.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ import shlex
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from physicsrl import builders
 from physicsrl.cli.command import compose
@@ -79,6 +82,7 @@ def main() -> None:
         if env is None:  # a rank that served an environment
             return
         seeds = held_out_seeds(args.seeds)
+        settings["draws"] = [list(env.task.draw(np.random.default_rng(s))) for s in seeds]
         done = previous_rows(args.out / name, settings) if args.resume else {}
         if args.open_loop:
             policies = open_loop_schedules(decisions(env))

@@ -13,7 +13,9 @@ configs live beside each task in :mod:`physicsrl.envs` (``HeatConfig``, ``ATPCon
 Seeds: training batch ``i`` of a run with seed ``s`` resets the env with :func:`train_seed`
 ``(s, i) = s * 1e6 + i``; evaluation uses the held-out seeds 1e9, 1e9 + 1, ...
 (:func:`held_out_seeds`), never met in training while ``s < 1000``. A YAML names the first
-``n`` of them as ``${held_out:n}``.
+``n`` of them as ``${held_out:n}``. Member i of a batch seeded with ``s`` is seeded with
+``s + i * SEED_STRIDE`` (:func:`~physicsrl.envs.members.member_seed`); :func:`is_held_out` tells
+the two kinds apart in any member.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from physicsrl.checks import integer, number, positive
 
 HELD_OUT_START = 1_000_000_000
 SEEDS_PER_RUN = 1_000_000
+SEED_STRIDE = 1 << 40  # between the seeds of a batch's members
 # float32 parameters, held 5 times: the online and target networks, the gradient, Adam's moments
 BYTES_PER_PARAMETER = 4 * 5
 
@@ -49,6 +52,13 @@ def check_seeds(seed: int, iterations: int, eval_seeds: list[int]) -> None:
 def held_out_seeds(n: int) -> list[int]:
     """The first ``n`` held-out evaluation seeds."""
     return list(range(HELD_OUT_START, HELD_OUT_START + n))
+
+
+def is_held_out(seed: int | None) -> bool:
+    """Whether an env seeded with ``seed`` runs held-out episodes: a held-out seed, a member's
+    seed derived from one, or None (unseeded). Tasks that draw training episodes from a fixed
+    pool draw these outside it (``reset.pool`` of :mod:`physicsrl.envs.atp`)."""
+    return seed is None or seed % SEED_STRIDE >= HELD_OUT_START
 
 
 class Activation(enum.Enum):

@@ -17,7 +17,9 @@ Run it on the leader inside ``with coordinator`` when the env drives a distribut
             dojo.train()
 
 Reproducibility: every collection batch starts from a reset of the env seeded with
-:func:`physicsrl.config.train_seed` (``reset_at_each_iter``), and checkpoints hold the weights,
+:func:`physicsrl.config.train_seed` (``reset_at_each_iter``; otherwise episodes run across
+batches, and the env is reseeded so after each evaluation, which ran held-out seeds), and
+checkpoints hold the weights,
 target network, optimizer, replay buffer, counters and every random generator state (torch, numpy,
 python, the env's), so a resumed run repeats an uninterrupted one step for step when the env
 is deterministic given its seed.
@@ -197,8 +199,7 @@ class Dojo:
         """
         config = self.config
         iterations = config.iterations if iterations is None else iterations
-        if config.collector.reset_at_each_iter:
-            check_seeds(config.seed, iterations, self.eval_seeds)
+        check_seeds(config.seed, iterations, self.eval_seeds)
         self._open_logs()
         collector = self._collector = Collector(
             TransformedEnv(self.env, RewardSum()),  # each episode's return so far
@@ -331,7 +332,9 @@ class Dojo:
         metrics = mean_metrics(rows)
         self._add_time("evaluation", time.perf_counter() - started)
         if self._collector is not None and not self.config.collector.reset_at_each_iter:
-            self._collector.reset()  # evaluation moved the env away from the batch in flight
+            # evaluation reseeded the env with held-out seeds and left the batch in flight
+            self.env.set_seed(train_seed(self.config.seed, self.counters.iteration))
+            self._collector.reset()
         row = {
             "iteration": self.counters.iteration,
             "frames": self.counters.frames,

@@ -14,9 +14,11 @@ from mpi4py import MPI
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
+from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import ATPReward, Catheter, load_config, make_env
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule, best_single_shock
+from physicsrl.envs.members import member_seed
 from physicsrl.evaluation import run_episode
 from physicsrl.fem.integrals import WeightedIntegrals
 
@@ -215,6 +217,14 @@ def test_prefill_and_pool():
         assert env.task.prefill(env.task.sampler.pool) == 0
         draws = {env.task.draw(np.random.default_rng(s)) for s in range(20)}
         assert draws == set(env.task.sampler.pool)
+        member = member_seed(5, 3)  # a training member's seed, above the held-out start
+        assert env.task.draw(np.random.default_rng(member)) in draws
+
+        held_out = [env.task.draw(np.random.default_rng(s)) for s in held_out_seeds(20)]
+        assert not set(held_out) & draws and len(set(held_out)) == 20  # outside the pool
+        seed = held_out_seeds(1)[0]
+        assert env.task.draw(np.random.default_rng(seed)) == held_out[0]  # the same draw again
+        assert env.task.draw(np.random.default_rng(member_seed(seed, 3))) not in draws
 
 
 def test_atp_baselines():

@@ -141,7 +141,7 @@ def test_atp_baselines_script_tables_each_policy(tmp_path):
 def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
     """--open-loop on a small ATP preset: one row per open-loop schedule with its shocks as
     scheduled; --resume keeps the rows already there (a marked row survives) and recomputes
-    the missing ones to the same values."""
+    the missing ones to the same values, and refuses rows of other draws of the seeds."""
     small = ["env.mesh.cells=20", "env.max_decisions=3", "env.extra_waits=1"]
     small += ["env.decision_interval=10", "env.shock.duration=5"]
     arguments = ["--seeds", "1", "--open-loop", "--out", str(tmp_path)]
@@ -173,6 +173,12 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
     assert [float(r["return"]) for r in again[10:]] == [float(r["return"]) for r in rows[10:]]
     record = (tmp_path / "atp_open_loop.txt").read_text()
     assert record.count("commit ") == 2 and record.count("--resume") == 1
+
+    other_draws = record.replace('"draws": [[', '"draws": [[1.5, ', 1)  # as older code drew
+    (tmp_path / "atp_open_loop.txt").write_text(other_draws)
+    with pytest.raises(SystemExit) as refused:
+        run_script("atp_baselines.py", *arguments, "--resume", *small)
+    assert refused.value.code == 2
 
 
 def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():

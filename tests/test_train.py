@@ -116,6 +116,35 @@ def test_dojo_learns_a_known_optimum(n_steps, action_costs, optimum):
     assert charged.all() if action_costs else not charged.any()
 
 
+def test_training_goes_on_from_a_training_seed_after_an_evaluation():
+    """With episodes running across batches (``reset_at_each_iter: false``) the evaluation
+    reseeds the env with held-out seeds; training then goes on from the generator of
+    ``train_seed(seed, iteration)``, never from a held-out one (a task with a pool of training
+    draws would otherwise draw held-out episodes, or never the pool)."""
+    sys.path.insert(0, str(TOY.parent))
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl import config as c
+    from physicsrl.builders import make_q_network
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+
+    coordinator = Coordinator()
+    env = ToyChainEnv(coordinator, length=3)
+    config = c.TrainConfig(
+        seed=3,
+        collector=c.CollectorConfig(frames_per_batch=8, reset_at_each_iter=False),
+        optim=c.OptimConfig(learning_starts=64),
+        eval=c.Evaluation(every=2, seeds=c.held_out_seeds(2)),
+        logger=c.LoggerConfig(progress=False),
+    )
+    with coordinator:
+        dojo = Dojo(make_q_network(env, config.agent.network), env, config)
+        dojo.train(2)
+    assert [row["iteration"] for row in dojo.history] == [2]
+    assert env.rng.bit_generator.seed_seq.entropy == c.train_seed(3, 2)
+
+
 def test_charge_actions_subtracts_each_actions_cost_from_its_reward():
     from tensordict import TensorDict
 

@@ -10,9 +10,11 @@ Reset (draws on the leader: ``c`` ~ U(``reset.centre_x``), ``h`` ~ U(``reset.hal
 ``rest_time`` without current, so that a spiral runs when the agent starts (a pair [low, high]
 draws the rest ~ U(low, high) too: the agent then takes over at a random phase of the
 reentry). A draw whose state
-is not finite is replaced by a new draw. With ``reset.pool`` > 0 the draws come from a fixed
-pool of that many draws (generated from ``reset.pool_seed``), which makes snapshots pay off in
-training too. Snapshots (:mod:`physicsrl.envs.snapshots`) skip the induction of draws seen
+is not finite is replaced by a new draw. With ``reset.pool`` > 0 training's draws come from a
+fixed pool of that many draws (generated from ``reset.pool_seed``), which makes snapshots pay
+off in training too; held-out episodes (:func:`~physicsrl.config.is_held_out` of the seed of the
+env's generator) still draw uniformly, so that an evaluation never replays a training draw.
+Snapshots (:mod:`physicsrl.envs.snapshots`) skip the induction of draws seen
 before.
 
 That induction (``induction: report``) works only on coarse grids: the stimulated strip lies in
@@ -52,6 +54,7 @@ from typing import ClassVar
 import numpy as np
 
 from physicsrl.checks import choice, integer, interval, number, positive, vector
+from physicsrl.config import is_held_out
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
@@ -165,8 +168,9 @@ class ResetStimulus:
 
 class ResetSampler:
     """``sampler(rng)`` -> the draws of a reset (:meth:`ATPTask.draw`): uniform in the ranges
-    of the config's induction, or one of a fixed pool of ``reset.pool`` such draws (generated
-    from ``reset.pool_seed``). The rest before the first decision is the last draw."""
+    of the config's induction, or, for a training generator, one of a fixed pool of
+    ``reset.pool`` such draws (generated from ``reset.pool_seed``). The rest before the first
+    decision is the last draw."""
 
     def __init__(self, config: ATPConfig):
         if config.induction == "report":
@@ -184,7 +188,9 @@ class ResetSampler:
         return (*draws, float(rng.uniform(low, high)) if low < high else low)
 
     def __call__(self, rng: np.random.Generator) -> tuple[float, ...]:
-        return self.pool[int(rng.integers(len(self.pool)))] if self.pool else self._uniform(rng)
+        if self.pool and not is_held_out(rng.bit_generator.seed_seq.entropy):  # its seed
+            return self.pool[int(rng.integers(len(self.pool)))]
+        return self._uniform(rng)
 
 
 @dataclass(frozen=True)

@@ -24,9 +24,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-__all__ = ["Members", "member_seed", "spread_episodes"]
+from physicsrl.config import SEED_STRIDE
 
-SEED_STRIDE = 1 << 40
+__all__ = ["Members", "member_seed", "spread_episodes"]
 
 
 def member_seed(seed: int | None, index: int) -> int | None:
