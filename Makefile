@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: help setup train test test-slurm bench lint clean
+.PHONY: help setup train test test-resolved test-slurm bench lint clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -24,6 +24,9 @@ train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 
 test: setup  ## run the whole test suite (unit and MPI tests)
 	$(BIN)/python -m pytest
+
+test-resolved: setup  ## the rows of the resolved (1000 x 1000) results tables, on 2 ranks (~5 min)
+	$(BIN)/python -m pytest -m resolved
 
 SLURM := tests/slurm/local_slurm.sh
 test-slurm: setup  ## the Slurm launcher on a local single-node Slurm (installed where possible, else skipped)
