@@ -45,11 +45,14 @@ from pathlib import Path
 import numpy as np
 
 from physicsrl import builders
+from physicsrl.checks import build, plain
 from physicsrl.cli.command import compose
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
+from physicsrl.envs.atp import ATPConfig, ResetSampler
 from physicsrl.envs.baselines import atp_baselines, decisions, open_loop_schedules
 from physicsrl.envs.groups import environments
+from physicsrl.envs.task import TASKS
 from physicsrl.evaluation import compare
 from physicsrl.tables import mean_metrics, read_per_policy, write_csv
 from physicsrl.training import n_environments
@@ -82,7 +85,7 @@ def main() -> None:
         if env is None:  # a rank that served an environment
             return
         seeds = held_out_seeds(args.seeds)
-        settings["draws"] = [list(env.task.draw(np.random.default_rng(s))) for s in seeds]
+        settings["draws"] = draws(cfg, seeds)
         done = previous_rows(args.out / name, settings) if args.resume else {}
         if args.open_loop:
             policies = open_loop_schedules(decisions(env))
@@ -134,6 +137,13 @@ def previous_rows(stem: Path, settings: dict) -> dict[str, list[dict]]:
         raise SystemExit(2)
     rows = {p: [{"policy": p, **row} for row in r] for p, r in read_per_policy(table).items()}
     return {k: v for k, v in rows.items() if len(v) == settings["seeds"]}
+
+
+def draws(cfg, seeds: list[int]) -> list[list[float]]:
+    """The reset draws of ``seeds`` in the task of ``cfg`` (any backend)."""
+    _, settings = TASKS.lookup(plain(cfg)["env"])
+    sampler = ResetSampler(build(ATPConfig, settings, "env"))
+    return [list(sampler(np.random.default_rng(seed))) for seed in seeds]
 
 
 def hindsight(rows: dict[str, list[dict]]) -> dict:
