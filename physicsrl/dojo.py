@@ -19,10 +19,9 @@ Run it on the leader inside ``with coordinator`` when the env drives a distribut
 Reproducibility: every collection batch starts from a reset of the env seeded with
 :func:`physicsrl.config.train_seed` (``reset_at_each_iter``; otherwise episodes run across
 batches, and the env is reseeded so after each evaluation, which ran held-out seeds), and
-checkpoints hold the weights,
-target network, optimizer, replay buffer, counters and every random generator state (torch, numpy,
-python, the env's), so a resumed run repeats an uninterrupted one step for step when the env
-is deterministic given its seed.
+checkpoints hold the weights, target network, optimizer, replay buffer, counters and every
+random generator state (torch, numpy, python, the env's), so a resumed run repeats an
+uninterrupted one step for step when the env is deterministic given its seed.
 """
 
 from __future__ import annotations

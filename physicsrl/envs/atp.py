@@ -9,13 +9,13 @@ Reset (draws on the leader: ``c`` ~ U(``reset.centre_x``), ``h`` ~ U(``reset.hal
 ``reset.current`` applied on the rectangle \|x - c\| < h, y > b for ``stimulus_time``, then
 ``rest_time`` without current, so that a spiral runs when the agent starts (a pair [low, high]
 draws the rest ~ U(low, high) too: the agent then takes over at a random phase of the
-reentry). A draw whose state
-is not finite is replaced by a new draw. With ``reset.pool`` > 0 training's draws come from a
-fixed pool of that many draws (generated from ``reset.pool_seed``), which makes snapshots pay
-off in training too; held-out episodes (:func:`~physicsrl.config.is_held_out` of the seed of the
-env's generator) still draw uniformly, so that an evaluation never replays a training draw.
-Snapshots (:mod:`physicsrl.envs.snapshots`) skip the induction of draws seen
-before.
+reentry). A draw whose state is not finite is replaced by a new draw. With ``reset.pool`` > 0
+training's draws come from a fixed pool of that many draws (generated from
+``reset.pool_seed``), which makes snapshots pay off in training too; held-out episodes
+(:func:`~physicsrl.config.is_held_out` of the seed of the env's generator; an unseeded
+generator's random entropy counts as its seed) still draw uniformly, so that an evaluation
+never replays a training draw. Snapshots (:mod:`physicsrl.envs.snapshots`) skip the induction
+of draws seen before.
 
 That induction (``induction: report``) works only on coarse grids: the stimulated strip lies in
 tissue with w < 0.2, which is not excitable, and only the grid's cell averages and numerical
