@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 .PHONY: help setup train test test-resolved test-slurm bench lint clean
 
 help:  ## list the targets
-	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-14s %s\n", $$1, $$2}'
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -22,7 +22,7 @@ setup: $(STAMP)  ## create .venv (Python 3.12) and install physicsrl editable wi
 train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 	$(BIN)/physicsrl-train mpi.ranks=2
 
-test: setup  ## run the whole test suite (unit and MPI tests)
+test: setup  ## run the test suite (unit and MPI tests; the resolved rows: test-resolved)
 	$(BIN)/python -m pytest
 
 test-resolved: setup  ## the rows of the resolved (1000 x 1000) results tables, on 2 ranks (~5 min)
