@@ -129,21 +129,25 @@ def test_explicit_refuses_an_unstable_step():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_cuda_float32_follows_cpu_float64():
-    """On a GPU (float32 by default) the implicit scheme follows the CPU float64 path to float32
-    accuracy over 200 steps of an excited state."""
+@pytest.mark.parametrize("compiled", [False, True])
+@pytest.mark.parametrize("scheme", ["implicit", "explicit"])
+def test_cuda_float32_follows_cpu_float64(scheme, compiled):
+    """On a GPU (float32 by default, eager or compiled to Triton) each scheme follows the CPU
+    float64 eager path to float32 accuracy over 200 steps of an excited state."""
     domain = SquareMesh(24, 50.0, "quadrilateral").create(MPI.COMM_SELF)
     _, w0, stimulus = induction(0.0)
     results = []
     for device in ("cpu", "cuda"):
-        sim = BatchedMonodomain(domain, **MODEL, device=device)
+        settings = {**MODEL, "scheme": scheme, "compiled": compiled and device == "cuda"}
+        sim = BatchedMonodomain(domain, **settings, device=device)
         u = torch.zeros(2, sim.num_dofs, device=device, dtype=sim.dtype)
         w = torch.stack([sim.nodal(w0)] * 2)
         ms = MonodomainMitchellSchaeffer(Coordinator(MPI.COMM_SELF), domain, I_app=stimulus)
         current = sim.tensor(np.array([ms._I_app.x.array] * 2))
         sim.advance(u, w, current, 200)
         results.append(u.double().cpu().numpy())
-    np.testing.assert_allclose(results[1], results[0], atol=1e-4)
+    # float32 on the CPU differs from float64 by 9e-6 (implicit) and 2e-6 (explicit) of max |u|
+    np.testing.assert_allclose(results[1], results[0], atol=5e-5 * np.abs(results[0]).max())
 
 
 @pytest.mark.parametrize("scheme", ["implicit", "explicit"])
