@@ -112,7 +112,7 @@ def main() -> None:
     torch.set_num_threads(1)
     lines = [
         "command: python " + " ".join(sys.argv),
-        f"load average before: {os.getloadavg()[0]:.2f} (2-core machine shared with other jobs)",
+        f"load average before: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)",
         f"device: {args.device}; one process, torch threads 1",
     ]
 
