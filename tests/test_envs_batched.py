@@ -83,6 +83,15 @@ def test_partial_reset_and_determinism():
     )
 
 
+@pytest.mark.parametrize("capacity", [0, 1])
+def test_more_replicas_than_the_snapshot_library_holds(capacity):
+    """A reset of more new draws than ``env.snapshots.capacity`` keeps (0: none) starts every
+    replica from its first draw, as with room for all: the same observations."""
+    roomy = batched(3).reset()["observation"]
+    small = batched(3, extra=(f"env.snapshots.capacity={capacity}",)).reset()["observation"]
+    assert torch.equal(small, roomy)
+
+
 def test_compiled_float32_env_follows_the_eager_float64_one():
     """``env.model.compile=true env.model.dtype=float32`` reach the simulator and give the
     eager float64 episode to float32 accuracy: observations of a reset and of two decisions

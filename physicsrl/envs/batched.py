@@ -174,23 +174,26 @@ class BatchedATPEnv(Members):
         while pending:
             keys = {i: self.sampler(self.rngs[i]) for i in pending}
             new = [i for i in pending if keys[i] not in self.snapshots]
-            if new:
-                u, w, finite = self._induce([keys[i] for i in new])
-                for j, i in enumerate(new):
-                    if bool(finite[j]):
-                        self.snapshots.put(keys[i], u[j].cpu().numpy(), w[j].cpu().numpy())
-            for i in list(pending):
-                if keys[i] in self.snapshots:
-                    u, w = self.snapshots.get(keys[i])
-                    self.u[i], self.w[i] = self.simulator.tensor(u), self.simulator.tensor(w)
+            for i in [i for i in pending if i not in new]:
+                u, w = self.snapshots.get(keys[i])
+                self.u[i], self.w[i] = self.simulator.tensor(u), self.simulator.tensor(w)
+                del pending[i]
+            if not new:
+                continue
+            # the induced states are used as they are: the library may keep fewer than len(new)
+            u, w, finite = self._induce([keys[i] for i in new])
+            for j, i in enumerate(new):
+                if bool(finite[j]):
+                    self.u[i], self.w[i] = u[j], w[j]
+                    self.snapshots.put(keys[i], u[j].cpu().numpy(), w[j].cpu().numpy())
                     del pending[i]
-                else:
-                    pending[i] += 1
-                    if pending[i] >= self.max_reset_attempts:
-                        raise RuntimeError(
-                            f"{self.max_reset_attempts} reset draws in a row gave non-finite "
-                            f"states (replica {i})"
-                        )
+                    continue
+                pending[i] += 1
+                if pending[i] >= self.max_reset_attempts:
+                    raise RuntimeError(
+                        f"{self.max_reset_attempts} reset draws in a row gave non-finite "
+                        f"states (replica {i})"
+                    )
         self.decisions[replicas] = 0
         self.intervals[replicas] = 0
 
