@@ -17,7 +17,13 @@ from torchrl.envs.utils import check_env_specs
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import ATPReward, Catheter, load_config, make_env
-from physicsrl.envs.baselines import Constant, EveryKth, Schedule, best_single_shock
+from physicsrl.envs.baselines import (
+    Constant,
+    EveryKth,
+    Schedule,
+    atp_baselines,
+    best_single_shock,
+)
 from physicsrl.envs.members import member_seed
 from physicsrl.evaluation import run_episode
 from physicsrl.fem.integrals import WeightedIntegrals
@@ -246,4 +252,5 @@ def test_atp_baselines():
         assert set(means) == {None, 0, 1, 2}
         assert means[next(iter(schedule.steps), None)] == max(means.values())
         assert isinstance(schedule, Schedule)
+    assert "best single shock (decision 2)" in atp_baselines(env, seeds, single_shock=2)
     assert ATPReward().events == env.task.events

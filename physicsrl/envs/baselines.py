@@ -140,10 +140,11 @@ def atp_baselines(
         best, _ = best_single_shock(env, seeds)
     else:
         best = Schedule([single_shock])
+    at = f"decision {min(best.steps)}" if best.steps else "none"
     return {
         "never shock": Constant(0),
         "always shock": Constant(1),
         "random (p=0.5)": RandomActions(0.5, seed=seed),
         "every 4th": EveryKth(4),
-        f"best single shock {sorted(best.steps)}": best,
+        f"best single shock ({at})": best,
     }
