@@ -340,6 +340,8 @@ class Dojo:
             "wall_s": round(sum(self.counters.time_s.values()), 3),  # of training, resumes too
             **metrics,
         }
+        # rows restored from a checkpoint come back with their keys sorted (JSON): this order
+        self.history[:] = [{k: r[k] for k in row if k in r} | r for r in self.history]
         self.history.append(row)
         self._log_evaluation(row)
         return metrics

@@ -408,6 +408,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
         uninterrupted["counters"][k] for k in counters
     ]
     assert timeless(resumed["history"]) == timeless(uninterrupted["history"])  # same numbers
+    header = [(d / "eval.csv").read_text().splitlines()[0] for d in (run_dir, reference_dir)]
+    assert header[0] == header[1]  # the same columns in the same order
     for key, value in uninterrupted["q_network"].items():
         if isinstance(value, torch.Tensor):
             assert torch.equal(resumed["q_network"][key], value), key
