@@ -174,7 +174,8 @@ class BatchedATPEnv(Members):
         while pending:
             keys = {i: self.sampler(self.rngs[i]) for i in pending}
             new = [i for i in pending if keys[i] not in self.snapshots]
-            for i in [i for i in pending if i not in new]:
+            fresh = set(new)
+            for i in [i for i in pending if i not in fresh]:
                 u, w = self.snapshots.get(keys[i])
                 self.u[i], self.w[i] = self.simulator.tensor(u), self.simulator.tensor(w)
                 del pending[i]
