@@ -108,11 +108,6 @@ ROWS = [
     ("train", ["env=ms", "env.model.backend=jax"], "env.model.backend must be one of petsc, torch"),
     (
         "train",
-        ["env=ms", "env.model.backend=torch", "env.induction=cross_field"],
-        "model.backend=torch induces the report's arrhythmia only",
-    ),
-    (
-        "train",
         ["env=ms", "env.model.backend=torch", "env.replicas=10000000"],
         "env.replicas=10000000 would need about 1.79e+03 GB (48 bytes per replica and dof)",
     ),

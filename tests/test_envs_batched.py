@@ -111,18 +111,34 @@ def test_compiled_float32_env_follows_the_eager_float64_one():
         np.testing.assert_allclose(compiled, eager, rtol=1e-3, atol=1e-3 * np.abs(eager).max())
 
 
-@pytest.mark.parametrize(
-    "scheme, rest", [("implicit", "6.0"), ("explicit", "6.0"), ("implicit", "[3.0,9.0]")]
+# the cross-field induction, short: S1 for 6, S2 after 0-3 more, then a rest of 3-9
+CROSS_FIELD = (
+    "env.induction=cross_field",
+    "env.cross_field.s1_time=6.0",
+    "env.cross_field.s2_delay=[0.0,3.0]",
+    "env.cross_field.rest_time=[3.0,9.0]",
 )
-def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme, rest):
+
+
+@pytest.mark.parametrize(
+    "scheme, rest, induction",
+    [
+        ("implicit", "6.0", ()),
+        ("explicit", "6.0", ()),
+        ("implicit", "[3.0,9.0]", ()),
+        ("explicit", "6.0", CROSS_FIELD),
+    ],
+)
+def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme, rest, induction):
     """Replica i of a batch seeded with s runs the episodes of the DOLFINx/PETSc env seeded
     with member_seed(s, i) (member i of N groups): over an episode (shock, then wait, then the
     extra waits) and the next reset, observations, rewards and flags are equal to the float32
     rounding of the observation (relative 1e-5) plus an absolute 1e-8 for the implicit scheme
     (CG at rtol 1e-10 against the direct solve; readings are up to 1e-2) and 1e-12 for the
     explicit one (the same arithmetic in another order); also with a rest drawn per reset (the
-    replicas then rest for different times)."""
-    extra = (f"env.model.scheme={scheme}", f"env.reset.rest_time={rest}")
+    replicas then rest for different times), and with the cross-field induction (S2 after a
+    drawn delay, then a drawn rest)."""
+    extra = (f"env.model.scheme={scheme}", f"env.reset.rest_time={rest}", *induction)
     env = batched(2, extra=extra)
     reference = make_env(load_config("ms", "catheter", "atp", [*SMALL, *extra]), Coordinator())
     actions = ([1, 0], [0, 1])
@@ -191,10 +207,6 @@ def test_policies_share_the_replicas_and_each_episode_is_its_own():
             "env.model.dtype must be one of auto, float64, float32, got 'float16'",
         ),
         (("env.model.backend=jax",), "env.model.backend must be one of petsc, torch, got 'jax'"),
-        (
-            ("env.model.backend=torch", "env.induction=cross_field"),
-            "model.backend=torch induces the report's arrhythmia only",
-        ),
     ],
 )
 def test_bad_settings_are_named(overrides, message):

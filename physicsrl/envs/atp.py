@@ -283,11 +283,6 @@ class ATPConfig:
                 f"replicas must be 1 with model.backend=petsc (replicas need model.backend="
                 f"torch; more PETSc environments come from mpi.ranks), got {self.replicas!r}"
             )
-        if self.model.backend == "torch" and self.induction != "report":
-            raise ValueError(
-                f"induction={self.induction!r}: model.backend=torch induces the report's "
-                "arrhythmia only (induction: report)"
-            )
         if self.shock.duration > self.decision_interval:
             raise ValueError(
                 f"shock.duration must be <= decision_interval = {self.decision_interval}, "

@@ -7,8 +7,8 @@ rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x
 (:class:`~physicsrl.envs.groups.GroupedEnv`).
 
 - Reset honours TorchRL's ``"_reset"`` mask: only the replicas it selects start a new episode
-  (their rows of u and w are written from the snapshot library, or induced, all new draws of
-  the call in one batch); the others keep their state.
+  (their rows of u and w are written from the snapshot library, or induced: the distinct new
+  draws of the call in one batch, by either induction); the others keep their state.
 - Step: every replica takes its action for one decision interval (shocks as a (B, cells)
   current on the replicas that shock); replicas that reach ``max_decisions`` without success
   run up to ``extra_waits`` further intervals in a sub-batch. A replica whose state stops being
@@ -89,13 +89,14 @@ class BatchedATPEnv(Members):
         degree = config.region_quadrature_degree
         self.stimulus = CellAverage(domain, rectangle_above, 3, degree)
         shock = config.shock
+        disk_current = CellAverage(domain, disk, 3, degree)
         self.shock = sim.tensor(
-            CellAverage(domain, disk, 3, degree)(shock.current, *shock.centre, shock.radius)
-            .x.array[: sim.num_cells]
-            .copy()
+            self._cells(disk_current(shock.current, *shock.centre, shock.radius))
         )
         self.sampler = ResetSampler(config)
-        settings = repr((config.mesh, config.model, config.reset, degree, "torch"))
+        self._s1_state: tuple[torch.Tensor, torch.Tensor] | None = None  # cross-field S1
+        induction = config.reset if config.induction == "report" else config.cross_field
+        settings = repr((config.mesh, config.model, induction, degree, "torch"))
         self.snapshots = SnapshotCache(
             config.snapshots.capacity, config.snapshots.directory, settings, MPI.COMM_SELF
         )
@@ -146,25 +147,58 @@ class BatchedATPEnv(Members):
         return self.simulator.advance(u, w, current, self.simulator.steps(duration))
 
     def _induce(self, draws: list[tuple[float, ...]]):
-        """(u, w, finite) after the reset's induction of each draw (c, h, b, rest), in one
-        batch: the stimulus together, then the rests, the replicas still resting together."""
-        r, sim = self.config.reset, self.simulator
-        w = torch.stack([sim.nodal(half_plane_gate(c, r.w_slope)) for c, *_ in draws])
-        u = torch.zeros_like(w)
-        current = sim.tensor(
-            np.array(
-                [self.stimulus(r.current, *d[:3]).x.array[: sim.num_cells].copy() for d in draws]
-            )
-        )
-        finite = self._run(u, w, current, r.stimulus_time)
-        rests, done = np.array([sim.steps(rest) for *_, rest in draws]), 0
-        for steps in np.unique(rests):
-            rows = torch.as_tensor(np.flatnonzero(rests >= steps), device=u.device)
-            resting_u, resting_w = u[rows], w[rows]
-            finite[rows] &= sim.advance(resting_u, resting_w, None, int(steps) - done)
-            u[rows], w[rows] = resting_u, resting_w
-            done = int(steps)
+        """(u, w, finite) after the reset's induction of each draw (see
+        :meth:`~physicsrl.envs.atp.ATPTask.draw`), in one batch: the stimuli together, each wait
+        with the replicas still waiting; the cross-field S1 state is simulated once."""
+        sim = self.simulator
+        if self.config.induction == "report":
+            r = self.config.reset
+            w = torch.stack([sim.nodal(half_plane_gate(c, r.w_slope)) for c, *_ in draws])
+            u = torch.zeros_like(w)
+            stimuli = [(r.current, c, h, b) for c, h, b, _ in draws]
+            finite = torch.ones(len(draws), dtype=torch.bool, device=u.device)
+            duration = r.stimulus_time
+        else:
+            f, far = self.config.cross_field, self.config.mesh.extent
+            u, w = (x.repeat(len(draws), 1) for x in self._s1())
+            finite = self._wait(u, w, [delay for delay, *_ in draws])
+            # x < edge: the rectangle |x - c| < h with its left side beyond the domain
+            stimuli = [(f.current, -far, edge + far, bottom) for _, edge, bottom, _ in draws]
+            duration = f.stimulus_time
+        current = sim.tensor(np.array([self._cells(self.stimulus(*s)) for s in stimuli]))
+        finite &= self._run(u, w, current, duration)
+        finite &= self._wait(u, w, [rest for *_, rest in draws])
         return u, w, finite
+
+    def _s1(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(u, w), each (1, n): the cross-field S1 state at ``s1_time``, from rest."""
+        if self._s1_state is None:
+            f, sim = self.config.cross_field, self.simulator
+            u = torch.zeros(1, sim.num_dofs, device=sim.device, dtype=sim.dtype)
+            w = torch.ones_like(u)
+            strip = self.stimulus(f.current, 0.0, 2 * self.config.mesh.extent, f.s1_bottom)
+            self._run(u, w, sim.tensor(self._cells(strip)[None]), f.stimulus_time)
+            self._run(u, w, None, f.s1_time - f.stimulus_time)
+            self._s1_state = (u, w)
+        return self._s1_state
+
+    def _cells(self, function) -> np.ndarray:
+        """The cell values (c,) of a DG0 function (its owned dofs, copied)."""
+        return function.x.array[: self.simulator.num_cells].copy()
+
+    def _wait(self, u, w, durations: Sequence[float]) -> torch.Tensor:
+        """Advance replica j of ``u``, ``w`` by ``durations[j]`` without current, in place, the
+        replicas still waiting together; whether each is finite, (B,) bool."""
+        steps = np.array([self.simulator.steps(d) for d in durations])
+        finite = torch.ones(len(steps), dtype=torch.bool, device=u.device)
+        done = 0
+        for s in np.unique(steps):
+            rows = torch.as_tensor(np.flatnonzero(steps >= s), device=u.device)
+            waiting_u, waiting_w = u[rows], w[rows]
+            finite[rows] &= self.simulator.advance(waiting_u, waiting_w, None, int(s) - done)
+            u[rows], w[rows] = waiting_u, waiting_w
+            done = int(s)
+        return finite
 
     def _start(self, replicas: list[int]) -> None:
         """New episodes for ``replicas``: each draws from its generator (again if the state
@@ -181,12 +215,18 @@ class BatchedATPEnv(Members):
                 del pending[i]
             if not new:
                 continue
+            # each distinct draw induced once (policies compared on the same seeds share draws);
             # the induced states are used as they are: the library may keep fewer than len(new)
-            u, w, finite = self._induce([keys[i] for i in new])
-            for j, i in enumerate(new):
+            draws = list(dict.fromkeys(keys[i] for i in new))
+            u, w, finite = self._induce(draws)
+            row = {key: j for j, key in enumerate(draws)}
+            for key, j in row.items():
+                if bool(finite[j]):
+                    self.snapshots.put(key, u[j].cpu().numpy(), w[j].cpu().numpy())
+            for i in new:
+                j = row[keys[i]]
                 if bool(finite[j]):
                     self.u[i], self.w[i] = u[j], w[j]
-                    self.snapshots.put(keys[i], u[j].cpu().numpy(), w[j].cpu().numpy())
                     del pending[i]
                     continue
                 pending[i] += 1
