@@ -60,6 +60,9 @@ def test_atp_presets_compose_with_the_report_figures():
     timing = compose("+experiment=atp_resolved_timing")  # the resolved task, a drawn phase
     assert "cells: 1000" in timing and "induction: cross_field" in timing
     assert "radius: 50.0" in timing and "rest_time:\n    - 200.0\n    - 450.0" in timing
+    gpu = compose("+experiment=atp_resolved_timing_batched")  # ... on 64 CUDA replicas
+    assert "induction: cross_field" in gpu and "radius: 50.0" in gpu
+    assert "backend: torch" in gpu and "device: cuda" in gpu and "replicas: 64" in gpu
 
 
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
@@ -318,26 +321,36 @@ TORCH_FLOAT32 += ["env.model.dtype=float32"]
 
 
 @pytest.mark.parametrize(
-    "experiment, schedule, seeds, overrides",
+    "experiment, schedule, seeds, overrides, suffix",
     [
-        ("atp_timing", "single shock at 0", 2, TORCH_FLOAT32),
+        ("atp_timing", "single shock at 0", 2, TORCH_FLOAT32, ""),
         pytest.param(
             "atp_resolved_timing",
             "single shock at 5",
             1,
             [],
+            "",
+            marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
+        ),
+        pytest.param(
+            "atp_resolved_timing",
+            "every 5 from 4",
+            1,
+            [],
+            "_cuda",
             marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
         ),
     ],
 )
 def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
-    tmp_path, experiment, schedule, seeds, overrides
+    tmp_path, experiment, schedule, seeds, overrides, suffix
 ):
-    """A bar's table (``experiments/results/<experiment>_open_loop_per_seed.csv``): its best
+    """A bar's table (``experiments/results/<experiment>_open_loop<suffix>_per_seed.csv``): a
     schedule on the first held-out seeds, recomputed on 2 ranks of one environment each, gives
     the table's rows (return, length, success, shocks). The timing variant's table was made on
     2 ranks x 460 replicas (torch, float32); the resolved one's (1000 x 1000, ~4 min here) runs
-    with ``make test-resolved``."""
+    with ``make test-resolved``, as does the resolved bar's schedule, whose rows came from a GPU
+    (``_cuda``: torch, float32), here recomputed with DOLFINx in float64."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
@@ -347,9 +360,9 @@ def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
     command += ["--schedules", schedule, *overrides]
     result = subprocess.run(command, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    table = f"{experiment}_open_loop_per_seed.csv"
-    rows = list(csv.DictReader((tmp_path / table).open()))
-    stored = [row for row in csv.DictReader((results / table).open()) if row["policy"] == schedule]
+    rows = list(csv.DictReader((tmp_path / f"{experiment}_open_loop_per_seed.csv").open()))
+    table = results / f"{experiment}_open_loop{suffix}_per_seed.csv"
+    stored = [row for row in csv.DictReader(table.open()) if row["policy"] == schedule]
     keys = ("policy", "seed", "return", "length", "success", "shocks")
     assert [[row[k] for k in keys] for row in rows] == [
         [row[k] for k in keys] for row in stored[:seeds]

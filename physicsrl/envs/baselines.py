@@ -20,8 +20,6 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from physicsrl.tables import mean_metrics
-
 if TYPE_CHECKING:
     from physicsrl.envs.heat import HeatOptimum
 
@@ -101,18 +99,14 @@ def decisions(env) -> int:
 
 def best_single_shock(env, seeds: Iterable[int]) -> tuple[Schedule, dict[int | None, float]]:
     """Try a single shock at every decision (and none) over ``seeds``; return the schedule with
-    the best mean return and every schedule's mean (key None: no shock). Snapshot resets make
-    the repeated resets of each seed cheap."""
-    from physicsrl.evaluation import run_episodes  # it imports this package
+    the best mean return and every schedule's mean (key None: no shock). All the schedules run
+    in one :func:`~physicsrl.evaluation.compare`: the members of a batch (replicas, groups)
+    share their episodes; snapshot resets make the repeated resets of each seed cheap."""
+    from physicsrl.evaluation import compare  # it imports this package
 
-    seeds = list(seeds)
-
-    def mean_return(policy: Policy) -> float:
-        return mean_metrics(run_episodes(env, policy, seeds))["return"]
-
-    means: dict[int | None, float] = {None: mean_return(Constant(0))}
-    for step in range(decisions(env)):
-        means[step] = mean_return(Schedule([step]))
+    candidates = {None: Constant(0)} | {step: Schedule([step]) for step in range(decisions(env))}
+    _, rows = compare(env, {str(step): policy for step, policy in candidates.items()}, seeds)
+    means = {step: row["return"] for step, row in zip(candidates, rows, strict=True)}
     best = max(means, key=means.get)
     return Schedule([] if best is None else [best]), means
 
