@@ -276,20 +276,23 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "policy, table, seeds",
+    "policy, table, seeds, float32",
     [
-        ("atp_agent.torchrl", "atp_agent_eval.csv", 1),
-        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", 1),
-        ("atp_timing_agent.torchrl", "atp_timing_agent_eval.csv", 20),
+        ("atp_agent.torchrl", "atp_agent_eval.csv", 1, False),
+        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", 1, False),
+        ("atp_timing_agent.torchrl", "atp_timing_agent_eval.csv", 20, True),
         pytest.param(
             "atp_resolved_timing_agent.torchrl",
             "atp_resolved_timing_agent_eval.csv",
             1,
+            False,
             marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
         ),
     ],
 )
-def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(tmp_path, policy, table, seeds):
+def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
+    tmp_path, policy, table, seeds, float32
+):
     """A stored ATP policy (experiments/results/) on its first held-out seeds, on 2 MPI ranks:
     the return, success and shocks of those seeds' rows in its table. The report task's first
     agent's table (atp_agent) was made on 1 rank and run B's on 2, so one seed checks that they
@@ -297,8 +300,12 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(tmp_path, pol
     x 10 replicas in one batch) is checked whole, in the same batch: a replica's round-off
     depends on the batch's size (the dense products of the fast solver), and the agent's
     decisions on the reentry's phase can amplify it (run 2's agent returned 424 on seed
-    1000000000 alone, 413 in the batch). The resolved agent's first row (1000 x 1000, with its
-    induction: ~5 min on 2 ranks) runs with ``make test-resolved``, outside ``make test``."""
+    1000000000 alone, 413 in the batch). Its compiled float32 steps round as the CPU's vector
+    instructions do: the table was made with AVX2 (AMD EPYC), where every row must match. With
+    AVX-512 (an Intel Xeon) 2 of the 20 rows differed: draw 06 failed with one shock instead of
+    two, draw 12 ended later (431 against 442); there up to 3 rows may differ. The resolved
+    agent's first row (1000 x 1000, with its induction: ~5 min on 2 ranks) runs with
+    ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
@@ -311,9 +318,14 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(tmp_path, pol
     rows = list(csv.DictReader((out / "eval.csv").open()))
     stored = list(csv.DictReader((results / table).open()))[:seeds]
     assert [row["seed"] for row in rows] == [row["seed"] for row in stored]
-    for row, expected in zip(rows, stored, strict=True):
-        for key in ("return", "success", "shocks"):
-            assert float(row[key]) == float(expected[key]), (row["seed"], key)
+    differ = [
+        (row["seed"], key, row[key], expected[key])
+        for row, expected in zip(rows, stored, strict=True)
+        for key in ("return", "success", "shocks")
+        if float(row[key]) != float(expected[key])
+    ]
+    made_here = not float32 or torch.backends.cpu.get_cpu_capability() == "AVX2"
+    assert len({seed for seed, *_ in differ}) <= (0 if made_here else 3), differ
 
 
 TORCH_FLOAT32 = ["env.model.backend=torch", "env.replicas=1", "env.model.compile=true"]
