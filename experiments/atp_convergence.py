@@ -7,7 +7,8 @@ at increasing resolution.
 
 One grid per call (``env.mesh.cells=CELLS``; unless ``env.model.scheme`` is given, the explicit
 scheme above 250 cells per side, where the implicit one costs minutes per decision). Policies:
-never shock, a single shock at decision k (``singleK``), every 4th decision. Seeds are the
+never shock, a single shock at decision k (``singleK``), every k-th decision from decision 0
+(``everyK``) or from o (``everyKfromO``). Seeds are the
 held-out evaluation seeds 1000000000, 1000000001, ... Every episode appends one row (cells,
 scheme, policy, seed, return, success, shocks, length = decisions to success or failure) to
 ``<experiment>_convergence.csv`` on the leader; rows already there are skipped, so a stopped
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import re
 import shlex
 import subprocess
 import sys
@@ -39,11 +41,12 @@ FIELDS = ("cells", "scheme", "policy", "seed", "return", "success", "shocks", "l
 def policy(name: str):
     if name == "never":
         return Constant(0)
-    if name == "every4":
-        return EveryKth(4)
     if name.startswith("single") and name[6:].isdigit():
         return Schedule([int(name[6:])])
-    raise ValueError(f"--policies: unknown policy {name!r} (never, singleK, every4)")
+    every = re.fullmatch(r"every(\d+)(?:from(\d+))?", name)
+    if every:
+        return EveryKth(int(every[1]), int(every[2] or 0))
+    raise ValueError(f"--policies: unknown policy {name!r} (never, singleK, everyK, everyKfromO)")
 
 
 def main() -> None:

@@ -200,6 +200,17 @@ def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():
     assert oracle["unended"] == [1_000_000_000 + draw for draw in (6, 11, 14, 17)]
 
 
+def test_convergence_study_names_its_policies():
+    """``--policies`` names: never, singleK, everyK (from decision 0) and everyKfromO."""
+    policy = runpy.run_path(str(ROOT / "experiments" / "atp_convergence.py"))["policy"]
+    assert policy("single3").steps == {3}
+    assert (policy("every4").k, policy("every4").offset) == (4, 0)
+    assert (policy("every5from4").k, policy("every5from4").offset) == (5, 4)
+    for bad in ("every", "every5from", "sometimes"):
+        with pytest.raises(ValueError, match=f"unknown policy '{bad}'"):
+            policy(bad)
+
+
 def test_convergence_study_appends_each_episode_and_resumes(tmp_path):
     """The convergence script on a small grid, resuming a study with one row done (marked):
     that row is kept, and one row per other (policy, seed) is appended, with the scheduled
