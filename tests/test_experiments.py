@@ -63,6 +63,7 @@ def test_atp_presets_compose_with_the_report_figures():
     gpu = compose("+experiment=atp_resolved_timing_batched")  # ... on 64 CUDA replicas
     assert "induction: cross_field" in gpu and "radius: 50.0" in gpu
     assert "backend: torch" in gpu and "device: cuda" in gpu and "replicas: 64" in gpu
+    assert "pool: 0" in gpu  # every training episode a new draw
 
 
 def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
