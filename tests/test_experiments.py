@@ -201,6 +201,36 @@ def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():
     assert oracle["unended"] == [1_000_000_000 + draw for draw in (6, 11, 14, 17)]
 
 
+def test_resolved_timing_bar_is_the_results_tables():
+    """The resolved timing task's bar from its stored rows: 37 schedules on the 20 held-out
+    draws, 10 on the CPU (DOLFINx, float64) and 27 on the GPU (torch, float32); the 3 run on
+    both give the same episodes; the best, every 5th decision from 4, 374.10 and 85%; the best
+    per draw with hindsight, 477.30 and 100% (experiments/results/README.md)."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from atp_baselines import hindsight
+
+    from physicsrl.tables import mean_metrics, read_per_policy
+
+    results = ROOT / "experiments" / "results"
+    cpu = read_per_policy(results / "atp_resolved_timing_open_loop_per_seed.csv")
+    gpu = read_per_policy(results / "atp_resolved_timing_open_loop_cuda_per_seed.csv")
+    both = sorted(set(cpu) & set(gpu))
+    assert both == ["every 2 from 0", "single shock at 3", "single shock at 4"]
+    episode = ("seed", "return", "length", "shocks")
+    for policy in both:
+        assert [[r[k] for k in episode] for r in cpu[policy]] == [
+            [r[k] for k in episode] for r in gpu[policy]
+        ], policy
+    rows = cpu | gpu
+    assert len(rows) == 37 and all(len(per_seed) == 20 for per_seed in rows.values())
+    means = {policy: mean_metrics(per_seed) for policy, per_seed in rows.items()}
+    best = max(means, key=lambda policy: means[policy]["return"])
+    assert best == "every 5 from 4"
+    assert round(means[best]["return"], 2) == 374.10 and means[best]["success"] == 0.85
+    oracle = hindsight(rows)
+    assert oracle["return"] == 477.3 and oracle["success"] == 1.0
+
+
 def test_convergence_study_names_its_policies():
     """``--policies`` names: never, singleK, everyK (from decision 0) and everyKfromO."""
     policy = runpy.run_path(str(ROOT / "experiments" / "atp_convergence.py"))["policy"]
