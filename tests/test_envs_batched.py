@@ -83,6 +83,18 @@ def test_partial_reset_and_determinism():
     )
 
 
+def test_simulated_seconds_by_phase():
+    """The replicas' simulation time by phase: resets induce, every step simulates a decision,
+    and the last decision's waits (SMALL: 2, never success) are a phase of their own, which
+    stays at zero without extra waits."""
+    env = batched(2)
+    env.rollout(2, break_when_any_done=False)
+    assert all(env.simulated_s[phase] > 0 for phase in ("induction", "decisions", "waits"))
+    no_waits = batched(2, extra=("env.extra_waits=0",))
+    no_waits.rollout(2, break_when_any_done=False)
+    assert no_waits.simulated_s["waits"] == 0.0 < no_waits.simulated_s["decisions"]
+
+
 @pytest.mark.parametrize("capacity", [0, 1])
 def test_more_replicas_than_the_snapshot_library_holds(capacity):
     """A reset of more new draws than ``env.snapshots.capacity`` keeps (0: none) starts every
@@ -265,6 +277,13 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
         assert result.returncode == 0, result.stdout + result.stderr
         summary = json.loads((runs[name] / "summary.json").read_text())["summary"]
         assert summary["environments"] == 4 and summary["frames"] == 4 * 2 * 4
+        # the replicas' phases of the training's simulation, on one rank (groups: not reported)
+        phases = summary["simulated_s"]
+        if ranks == 1:
+            assert set(phases) == {"induction", "decisions", "waits"}
+            assert 0 < sum(phases.values()) <= summary["time_s"]["simulation"]
+        else:
+            assert phases == {}
         groups = 4 // replicas
         layout = f"4 environments ({groups} group{'s' * (groups > 1)} of {replicas} replicas)"
         assert layout in (runs[name] / "train.log").read_text()

@@ -14,6 +14,9 @@ rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x
   run up to ``extra_waits`` further intervals in a sub-batch. A replica whose state stops being
   finite ends its episode as truncated with ``diverged`` set, as in
   :class:`~physicsrl.envs.env.PhysicsEnv`.
+- Time: :attr:`simulated_s` holds the seconds spent so far simulating each phase,
+  ``induction`` (resets), ``decisions`` (every replica's interval) and ``waits`` (the last
+  decision's sub-batch); training reports them.
 - Seeds: the replicas are the members of a batch (:class:`~physicsrl.envs.members.Members`):
   replica i draws its episodes from its own generator, seeded with ``member_seed(seed, i)``,
   so replica i runs the episodes of :class:`~physicsrl.envs.env.PhysicsEnv` seeded with that
@@ -26,6 +29,7 @@ Built by :func:`physicsrl.envs.make_env` when ``env.model.backend`` is ``torch``
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -104,6 +108,7 @@ class BatchedATPEnv(Members):
         self.w = torch.ones_like(self.u)
         self.decisions = np.zeros(B, dtype=np.int64)
         self.intervals = np.zeros(B, dtype=np.int64)
+        self.simulated_s = dict.fromkeys(("induction", "decisions", "waits"), 0.0)
         self.rngs: list[np.random.Generator] = [None] * B  # seeded below (member_seed)
 
         flag = Categorical(2, shape=(B, 1), dtype=torch.bool)
@@ -147,7 +152,7 @@ class BatchedATPEnv(Members):
         return self.simulator.advance(u, w, current, self.simulator.steps(duration))
 
     def _induce(self, draws: list[tuple[float, ...]]):
-        """(u, w, finite) after the reset's induction of each draw (see
+        """(u, w, finite: numpy) after the reset's induction of each draw (see
         :meth:`~physicsrl.envs.atp.ATPTask.draw`), in one batch: the stimuli together, each wait
         with the replicas still waiting; the cross-field S1 state is simulated once."""
         sim = self.simulator
@@ -168,7 +173,7 @@ class BatchedATPEnv(Members):
         current = sim.tensor(np.array([self._cells(self.stimulus(*s)) for s in stimuli]))
         finite &= self._run(u, w, current, duration)
         finite &= self._wait(u, w, [rest for *_, rest in draws])
-        return u, w, finite
+        return u, w, finite.cpu().numpy()
 
     def _s1(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(u, w), each (1, n): the cross-field S1 state at ``s1_time``, from rest."""
@@ -218,7 +223,9 @@ class BatchedATPEnv(Members):
             # each distinct draw induced once (policies compared on the same seeds share draws);
             # the induced states are used as they are: the library may keep fewer than len(new)
             draws = list(dict.fromkeys(keys[i] for i in new))
+            started = time.perf_counter()
             u, w, finite = self._induce(draws)
+            self.simulated_s["induction"] += time.perf_counter() - started
             row = {key: j for j, key in enumerate(draws)}
             for key, j in row.items():
                 if bool(finite[j]):
@@ -295,8 +302,11 @@ class BatchedATPEnv(Members):
         self.decisions[index] += 1
         self.intervals[index] += 1
         rows = self._rows(index)
+        started = time.perf_counter()
         finite = self._advance(rows, shock)
         values = self._integrals(rows)
+        waited = time.perf_counter()
+        self.simulated_s["decisions"] += waited - started
         success = finite & (values[:, 0] < config.success_threshold)
         last = self.decisions[index] >= config.max_decisions
         waiting = np.flatnonzero(finite & ~success & last)
@@ -309,6 +319,8 @@ class BatchedATPEnv(Members):
             values[waiting] = self._integrals(waiting_rows)
             success[waiting] = finite[waiting] & (values[waiting, 0] < config.success_threshold)
             waiting = waiting[finite[waiting] & ~success[waiting]]
+        if config.extra_waits:
+            self.simulated_s["waits"] += time.perf_counter() - waited
         diverged = ~finite
         failure = finite & ~success & last
         values[diverged] = 0.0
