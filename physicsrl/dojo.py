@@ -61,8 +61,9 @@ class Counters:
     episodes: int = 0  # training episodes finished
     updates: int = 0  # gradient steps
     time_s: dict = field(default_factory=dict)  # cumulative seconds per phase
-    # the "simulation" of time_s by the env's own phases, where it reports them (simulated_s)
-    simulated_s: dict = field(default_factory=dict)
+    # the "simulation" of time_s by the env's phases, where it reports them: (seconds,
+    # replica-steps) per phase (the torch replicas' ``simulated``)
+    simulated: dict = field(default_factory=dict)
 
 
 class NonFiniteTraining(ArithmeticError):
@@ -226,9 +227,11 @@ class Dojo:
                 coordination_s = self._broadcast_s() - sent
                 self._add_time("coordination", coordination_s)
                 self._add_time("simulation", collect_s - coordination_s)
-                for phase, seconds in self._phases().items():
-                    spent = self.counters.simulated_s.get(phase, 0.0) + seconds - phases[phase]
-                    self.counters.simulated_s[phase] = spent
+                for phase, after in self._phases().items():
+                    total = self.counters.simulated.get(phase, (0.0, 0))
+                    self.counters.simulated[phase] = tuple(
+                        t + a - b for t, a, b in zip(total, after, phases[phase], strict=True)
+                    )
                 returns = self._record_batch(data)
                 self.exploration[-1].step(data.numel())  # anneal epsilon
                 if len(self.action_costs):
@@ -471,7 +474,7 @@ class Dojo:
         scalar("perf/env_steps_per_s", frames / max(collect_s, 1e-9), step)
         for phase, seconds in self.counters.time_s.items():
             scalar(f"time/{phase}_s", seconds, step)
-        for phase, seconds in self.counters.simulated_s.items():
+        for phase, (seconds, _) in self.counters.simulated.items():
             scalar(f"time/simulation_{phase}_s", seconds, step)
 
     def _log_evaluation(self, row: dict) -> None:
@@ -518,9 +521,10 @@ class Dojo:
     def _add_time(self, phase: str, seconds: float) -> None:
         self.counters.time_s[phase] = self.counters.time_s.get(phase, 0.0) + seconds
 
-    def _phases(self) -> dict[str, float]:
-        """The env's seconds simulating each of its phases so far ({}: it does not say)."""
-        return dict(vars(self.env).get("simulated_s", {}))  # not getattr: EnvBase searches on
+    def _phases(self) -> dict[str, tuple[float, int]]:
+        """The env's (seconds, replica-steps) of each of its phases so far ({}: it does not
+        say)."""
+        return dict(vars(self.env).get("simulated", {}))  # not getattr: EnvBase searches on
 
     def _broadcast_s(self) -> float:
         """The leader's seconds sending parallel calls to the followers so far (0: none)."""

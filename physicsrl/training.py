@@ -213,8 +213,11 @@ def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task |
         f"({summary['env_steps_per_s']:.1f} env steps/s while simulating)",
         f"time: {times}",
     ]
-    if summary.get("simulated_s"):
-        phases = ", ".join(f"{k} {v:.1f}s" for k, v in summary["simulated_s"].items())
+    if summary.get("simulated"):
+        phases = ", ".join(
+            f"{phase} {seconds:.1f}s ({steps / max(seconds, 1e-9):,.0f} replica-steps/s)"
+            for phase, (seconds, steps) in summary["simulated"].items()
+        )
         lines.append(f"simulation by phase: {phases}")
     if summary.get("stopped"):
         lines.append(f"stopped early: {summary['stopped']} (resume with resume={log_dir})")

@@ -83,16 +83,27 @@ def test_partial_reset_and_determinism():
     )
 
 
-def test_simulated_seconds_by_phase():
-    """The replicas' simulation time by phase: resets induce, every step simulates a decision,
-    and the last decision's waits (SMALL: 2, never success) are a phase of their own, which
-    stays at zero without extra waits."""
-    env = batched(2)
-    env.rollout(2, break_when_any_done=False)
-    assert all(env.simulated_s[phase] > 0 for phase in ("induction", "decisions", "waits"))
-    no_waits = batched(2, extra=("env.extra_waits=0",))
-    no_waits.rollout(2, break_when_any_done=False)
-    assert no_waits.simulated_s["waits"] == 0.0 < no_waits.simulated_s["decisions"]
+def test_simulated_cost_by_phase():
+    """What the replicas simulate, by phase, in replica-steps (steps of dt x replicas): a reset
+    of 2 replicas induces each (the stimulus, then the rest), each decision advances both by
+    one interval (a shock's included), and the last decision's waits (SMALL: never success)
+    advance both by ``extra_waits`` more intervals; seconds are counted beside each."""
+    for extra_waits in (2, 0):
+        env = batched(2, extra=(f"env.extra_waits={extra_waits}",))
+        sim, config = env.simulator, env.config
+        env.reset()
+        action = TensorDict({"action": torch.tensor([1, 0])}, batch_size=[2])
+        env.step(action)
+        env.step(action)
+        interval = sim.steps(config.decision_interval)
+        rest, _ = config.reset.rest_time  # SMALL's fixed rest: (6, 6)
+        induction = sim.steps(config.reset.stimulus_time) + sim.steps(rest)
+        assert {phase: steps for phase, (_, steps) in env.simulated.items()} == {
+            "induction": 2 * induction,
+            "decisions": 2 * 2 * interval,
+            "waits": 2 * extra_waits * interval,
+        }
+        assert all(seconds > 0 for seconds, steps in env.simulated.values() if steps)
 
 
 @pytest.mark.parametrize("capacity", [0, 1])
@@ -269,6 +280,7 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
         "checkpoint.every=2",
         "logger.progress=false",
     ]
+    interval = batched(1).simulator.steps(3.0)  # SMALL's decision interval, in steps of dt
     runs = {}
     for name, ranks, replicas in (("one_rank", 1, 4), ("two_ranks", 2, 2)):
         runs[name] = tmp_path / name
@@ -277,11 +289,12 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
         assert result.returncode == 0, result.stdout + result.stderr
         summary = json.loads((runs[name] / "summary.json").read_text())["summary"]
         assert summary["environments"] == 4 and summary["frames"] == 4 * 2 * 4
-        # the replicas' phases of the training's simulation, on one rank (groups: not reported)
-        phases = summary["simulated_s"]
+        # the replicas' phases of the training's simulation, on one rank (groups: not reported):
+        # each frame is one decision interval of one replica
+        phases = summary["simulated"]
         if ranks == 1:
-            assert set(phases) == {"induction", "decisions", "waits"}
-            assert 0 < sum(phases.values()) <= summary["time_s"]["simulation"]
+            assert phases["decisions"][1] == summary["frames"] * interval
+            assert 0 < sum(s for s, _ in phases.values()) <= summary["time_s"]["simulation"]
         else:
             assert phases == {}
         groups = 4 // replicas

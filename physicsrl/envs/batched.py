@@ -14,9 +14,9 @@ rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x
   run up to ``extra_waits`` further intervals in a sub-batch. A replica whose state stops being
   finite ends its episode as truncated with ``diverged`` set, as in
   :class:`~physicsrl.envs.env.PhysicsEnv`.
-- Time: :attr:`simulated_s` holds the seconds spent so far simulating each phase,
-  ``induction`` (resets), ``decisions`` (every replica's interval) and ``waits`` (the last
-  decision's sub-batch); training reports them.
+- Cost: :attr:`simulated` holds, per phase, the seconds spent so far and the replica-steps
+  (steps of dt times replicas) simulated: ``induction`` (resets), ``decisions`` (every
+  replica's interval) and ``waits`` (the last decision's sub-batch); training reports them.
 - Seeds: the replicas are the members of a batch (:class:`~physicsrl.envs.members.Members`):
   replica i draws its episodes from its own generator, seeded with ``member_seed(seed, i)``,
   so replica i runs the episodes of :class:`~physicsrl.envs.env.PhysicsEnv` seeded with that
@@ -30,7 +30,8 @@ Built by :func:`physicsrl.envs.make_env` when ``env.model.backend`` is ``torch``
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -108,7 +109,7 @@ class BatchedATPEnv(Members):
         self.w = torch.ones_like(self.u)
         self.decisions = np.zeros(B, dtype=np.int64)
         self.intervals = np.zeros(B, dtype=np.int64)
-        self.simulated_s = dict.fromkeys(("induction", "decisions", "waits"), 0.0)
+        self.simulated = {phase: (0.0, 0) for phase in ("induction", "decisions", "waits")}
         self.rngs: list[np.random.Generator] = [None] * B  # seeded below (member_seed)
 
         flag = Categorical(2, shape=(B, 1), dtype=torch.bool)
@@ -223,9 +224,8 @@ class BatchedATPEnv(Members):
             # each distinct draw induced once (policies compared on the same seeds share draws);
             # the induced states are used as they are: the library may keep fewer than len(new)
             draws = list(dict.fromkeys(keys[i] for i in new))
-            started = time.perf_counter()
-            u, w, finite = self._induce(draws)
-            self.simulated_s["induction"] += time.perf_counter() - started
+            with self._phase("induction"):
+                u, w, finite = self._induce(draws)
             row = {key: j for j, key in enumerate(draws)}
             for key, j in row.items():
                 if bool(finite[j]):
@@ -268,6 +268,18 @@ class BatchedATPEnv(Members):
             return None
         return torch.as_tensor(index, device=self.u.device)
 
+    @contextmanager
+    def _phase(self, name: str) -> Iterator[None]:
+        """Add the seconds and replica-steps of the block to :attr:`simulated` [name] (the
+        block ends by reading results back to the host, so a GPU's work is done by then)."""
+        started, steps = time.perf_counter(), self.simulator.replica_steps
+        yield
+        seconds, replica_steps = self.simulated[name]
+        self.simulated[name] = (
+            seconds + time.perf_counter() - started,
+            replica_steps + self.simulator.replica_steps - steps,
+        )
+
     # members -------------------------------------------------------------------------------
     def _values(self, index: np.ndarray, observations, diverged, success) -> dict[str, np.ndarray]:
         """Per-key arrays (leading dimension len(index)) of the replicas ``index``."""
@@ -302,25 +314,22 @@ class BatchedATPEnv(Members):
         self.decisions[index] += 1
         self.intervals[index] += 1
         rows = self._rows(index)
-        started = time.perf_counter()
-        finite = self._advance(rows, shock)
-        values = self._integrals(rows)
-        waited = time.perf_counter()
-        self.simulated_s["decisions"] += waited - started
+        with self._phase("decisions"):
+            finite = self._advance(rows, shock)
+            values = self._integrals(rows)
         success = finite & (values[:, 0] < config.success_threshold)
         last = self.decisions[index] >= config.max_decisions
         waiting = np.flatnonzero(finite & ~success & last)
-        for _ in range(config.extra_waits):
-            if not len(waiting):
-                break
-            waiting_rows = torch.as_tensor(index[waiting], device=self.u.device)
-            finite[waiting] &= self._advance(waiting_rows, None)
-            self.intervals[index[waiting]] += 1
-            values[waiting] = self._integrals(waiting_rows)
-            success[waiting] = finite[waiting] & (values[waiting, 0] < config.success_threshold)
-            waiting = waiting[finite[waiting] & ~success[waiting]]
-        if config.extra_waits:
-            self.simulated_s["waits"] += time.perf_counter() - waited
+        with self._phase("waits"):
+            for _ in range(config.extra_waits):
+                if not len(waiting):
+                    break
+                waiting_rows = torch.as_tensor(index[waiting], device=self.u.device)
+                finite[waiting] &= self._advance(waiting_rows, None)
+                self.intervals[index[waiting]] += 1
+                values[waiting] = self._integrals(waiting_rows)
+                success[waiting] = finite[waiting] & (values[waiting, 0] < config.success_threshold)
+                waiting = waiting[finite[waiting] & ~success[waiting]]
         diverged = ~finite
         failure = finite & ~success & last
         values[diverged] = 0.0
