@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import imageio.v2 as imageio
 import pytest
 import torch
 from tensordict import TensorDict
@@ -558,7 +559,7 @@ def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
     advances (3 decisions of 0.1): the VTX series read back holds u on all 81 nodes at times
     0, 0.1, 0.2, 0.3; at t = 0 u is the drawn integer level, later u_D = 1 on the boundary,
     and its distance from u_D decays at every step (implicit Euler); the PNG is rendered from
-    the data read back."""
+    the data read back; the episode's GIF has one frame per decision."""
     import numpy as np
     from torchrl.checkpoint import Checkpoint
 
@@ -586,7 +587,7 @@ def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
     ).save(advance)
     out = tmp_path / "eval"
     evaluate = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={advance}"]
-    options = ["seeds=1", "baselines=false", "gif=false", "curve=false", "fields=true"]
+    options = ["seeds=1", "baselines=false", "curve=false", "fields=true"]  # and the GIF
     result = run([*evaluate, *options, f"hydra.run.dir={out}"], tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.count("fields of seed 1000000000 (u at 4 times)") == 1, result.stdout
@@ -602,6 +603,11 @@ def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
     distance = np.sqrt(((u - 1.0) ** 2).mean(axis=1))
     assert distance[0] > 0 and np.all(np.diff(distance) < 0), distance
     assert (out / "fields.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the GIF of the episode: the field after the reset and after each decision but the last
+    # (the rollout ends there)
+    assert "episode of seed 1000000000: actions [1, 1, 1]" in result.stdout, result.stdout
+    frames = imageio.mimread(out / "episode.gif")
+    assert len(frames) == 3 and frames[0].ndim == 3 and frames[0].shape[-1] == 3
 
 
 def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_checkpoint(tmp_path):
