@@ -16,7 +16,8 @@ rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x
   :class:`~physicsrl.envs.env.PhysicsEnv`.
 - Cost: :attr:`simulated` holds, per phase, the seconds spent so far and the replica-steps
   (steps of dt times replicas) simulated: ``induction`` (resets), ``decisions`` (every
-  replica's interval) and ``waits`` (the last decision's sub-batch); training reports them.
+  replica's interval and its observation) and ``waits`` (the last decision's sub-batch);
+  training reports them.
 - Seeds: the replicas are the members of a batch (:class:`~physicsrl.envs.members.Members`):
   replica i draws its episodes from its own generator, seeded with ``member_seed(seed, i)``,
   so replica i runs the episodes of :class:`~physicsrl.envs.env.PhysicsEnv` seeded with that
