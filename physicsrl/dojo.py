@@ -62,7 +62,7 @@ class Counters:
     updates: int = 0  # gradient steps
     time_s: dict = field(default_factory=dict)  # cumulative seconds per phase
     # the "simulation" of time_s by the env's phases, where it reports them: (seconds,
-    # replica-steps) per phase (the torch replicas' ``simulated``)
+    # replica-steps, batch-steps) per phase (the torch replicas' ``simulated``)
     simulated: dict = field(default_factory=dict)
 
 
@@ -228,7 +228,7 @@ class Dojo:
                 self._add_time("coordination", coordination_s)
                 self._add_time("simulation", collect_s - coordination_s)
                 for phase, after in self._phases().items():
-                    total = self.counters.simulated.get(phase, (0.0, 0))
+                    total = self.counters.simulated.get(phase, (0.0, 0, 0))
                     self.counters.simulated[phase] = tuple(
                         t + a - b for t, a, b in zip(total, after, phases[phase], strict=True)
                     )
@@ -474,7 +474,7 @@ class Dojo:
         scalar("perf/env_steps_per_s", frames / max(collect_s, 1e-9), step)
         for phase, seconds in self.counters.time_s.items():
             scalar(f"time/{phase}_s", seconds, step)
-        for phase, (seconds, _) in self.counters.simulated.items():
+        for phase, (seconds, *_) in self.counters.simulated.items():
             scalar(f"time/simulation_{phase}_s", seconds, step)
 
     def _log_evaluation(self, row: dict) -> None:
@@ -521,9 +521,9 @@ class Dojo:
     def _add_time(self, phase: str, seconds: float) -> None:
         self.counters.time_s[phase] = self.counters.time_s.get(phase, 0.0) + seconds
 
-    def _phases(self) -> dict[str, tuple[float, int]]:
-        """The env's (seconds, replica-steps) of each of its phases so far ({}: it does not
-        say)."""
+    def _phases(self) -> dict[str, tuple[float, int, int]]:
+        """The env's (seconds, replica-steps, batch-steps) of each of its phases so far ({}: it
+        does not say)."""
         return dict(vars(self.env).get("simulated", {}))  # not getattr: EnvBase searches on
 
     def _broadcast_s(self) -> float:

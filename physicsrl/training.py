@@ -215,8 +215,9 @@ def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task |
     ]
     if summary.get("simulated"):
         phases = ", ".join(
-            f"{phase} {seconds:.1f}s ({steps / max(seconds, 1e-9):,.0f} replica-steps/s)"
-            for phase, (seconds, steps) in summary["simulated"].items()
+            f"{phase} {seconds:.1f}s ({steps / max(seconds, 1e-9):,.0f} replica-steps/s, "
+            f"mean batch {steps / max(batch_steps, 1):.1f})"
+            for phase, (seconds, steps, batch_steps) in summary["simulated"].items()
         )
         lines.append(f"simulation by phase: {phases}")
     if summary.get("stopped"):

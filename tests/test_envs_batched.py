@@ -86,8 +86,10 @@ def test_partial_reset_and_determinism():
 def test_simulated_cost_by_phase():
     """What the replicas simulate, by phase, in replica-steps (steps of dt x replicas): a reset
     of 2 replicas induces each (the stimulus, then the rest), each decision advances both by
-    one interval (a shock's included), and the last decision's waits (SMALL: never success)
-    advance both by ``extra_waits`` more intervals; seconds are counted beside each."""
+    one interval (a shock's included), the last decision's waits (SMALL: never success)
+    advance both by ``extra_waits`` more intervals, and a new episode of replica 1 alone
+    induces it; in batch-steps, the 2 replicas advance together and the lone one alone (the
+    shock's steps and the rest of its interval are one interval); seconds beside each."""
     for extra_waits in (2, 0):
         env = batched(2, extra=(f"env.extra_waits={extra_waits}",))
         sim, config = env.simulator, env.config
@@ -95,15 +97,19 @@ def test_simulated_cost_by_phase():
         action = TensorDict({"action": torch.tensor([1, 0])}, batch_size=[2])
         env.step(action)
         env.step(action)
+        env.reset_some([1])
         interval = sim.steps(config.decision_interval)
         rest, _ = config.reset.rest_time  # SMALL's fixed rest: (6, 6)
         induction = sim.steps(config.reset.stimulus_time) + sim.steps(rest)
-        assert {phase: steps for phase, (_, steps) in env.simulated.items()} == {
-            "induction": 2 * induction,
-            "decisions": 2 * 2 * interval,
-            "waits": 2 * extra_waits * interval,
+        steps = {  # (replica-steps, batch-steps)
+            "induction": (3 * induction, 2 * induction),
+            "decisions": (2 * 2 * interval, 2 * interval),
+            "waits": (2 * extra_waits * interval, extra_waits * interval),
         }
-        assert all(seconds > 0 for seconds, steps in env.simulated.values() if steps)
+        assert env.simulated == {
+            phase: (env.simulated[phase][0], *counts) for phase, counts in steps.items()
+        }
+        assert all(seconds > 0 for seconds, steps, _ in env.simulated.values() if steps)
 
 
 @pytest.mark.parametrize("capacity", [0, 1])
@@ -294,7 +300,7 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
         phases = summary["simulated"]
         if ranks == 1:
             assert phases["decisions"][1] == summary["frames"] * interval
-            assert 0 < sum(s for s, _ in phases.values()) <= summary["time_s"]["simulation"]
+            assert 0 < sum(s for s, *_ in phases.values()) <= summary["time_s"]["simulation"]
         else:
             assert phases == {}
         groups = 4 // replicas

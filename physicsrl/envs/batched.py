@@ -14,10 +14,11 @@ rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x
   run up to ``extra_waits`` further intervals in a sub-batch. A replica whose state stops being
   finite ends its episode as truncated with ``diverged`` set, as in
   :class:`~physicsrl.envs.env.PhysicsEnv`.
-- Cost: :attr:`simulated` holds, per phase, the seconds spent so far and the replica-steps
-  (steps of dt times replicas) simulated: ``induction`` (resets), ``decisions`` (every
-  replica's interval and its observation) and ``waits`` (the last decision's sub-batch);
-  training reports them.
+- Cost: :attr:`simulated` holds, per phase, the seconds spent so far, the replica-steps
+  (steps of dt times replicas) simulated and the batch-steps (steps of dt, each advancing one
+  batch, whatever its size: replica-steps / batch-steps is the phase's mean batch):
+  ``induction`` (resets), ``decisions`` (every replica's interval and its observation) and
+  ``waits`` (the last decision's sub-batch); training reports them.
 - Seeds: the replicas are the members of a batch (:class:`~physicsrl.envs.members.Members`):
   replica i draws its episodes from its own generator, seeded with ``member_seed(seed, i)``,
   so replica i runs the episodes of :class:`~physicsrl.envs.env.PhysicsEnv` seeded with that
@@ -110,7 +111,7 @@ class BatchedATPEnv(Members):
         self.w = torch.ones_like(self.u)
         self.decisions = np.zeros(B, dtype=np.int64)
         self.intervals = np.zeros(B, dtype=np.int64)
-        self.simulated = {phase: (0.0, 0) for phase in ("induction", "decisions", "waits")}
+        self.simulated = {phase: (0.0, 0, 0) for phase in ("induction", "decisions", "waits")}
         self.rngs: list[np.random.Generator] = [None] * B  # seeded below (member_seed)
 
         flag = Categorical(2, shape=(B, 1), dtype=torch.bool)
@@ -271,14 +272,15 @@ class BatchedATPEnv(Members):
 
     @contextmanager
     def _phase(self, name: str) -> Iterator[None]:
-        """Add the seconds and replica-steps of the block to :attr:`simulated` [name] (the
-        block ends by reading results back to the host, so a GPU's work is done by then)."""
-        started, steps = time.perf_counter(), self.simulator.replica_steps
+        """Add the seconds, replica-steps and batch-steps of the block to :attr:`simulated`
+        [name] (the block ends by reading results back to the host, so a GPU's work is done by
+        then)."""
+        sim = self.simulator
+        before = (time.perf_counter(), sim.replica_steps, sim.batch_steps)
         yield
-        seconds, replica_steps = self.simulated[name]
-        self.simulated[name] = (
-            seconds + time.perf_counter() - started,
-            replica_steps + self.simulator.replica_steps - steps,
+        after = (time.perf_counter(), sim.replica_steps, sim.batch_steps)
+        self.simulated[name] = tuple(
+            total + b - a for total, a, b in zip(self.simulated[name], before, after, strict=True)
         )
 
     # members -------------------------------------------------------------------------------

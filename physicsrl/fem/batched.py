@@ -183,6 +183,7 @@ class BatchedMonodomain:
         self.scheme, self.substeps, self.dt = scheme, substeps, float(dt)
         self.iterations = 0
         self.replica_steps = 0  # steps of dt advanced, summed over the replicas
+        self.batch_steps = 0  # steps of dt advanced, each of one batch of replicas
         self.threads = int(threads)
         self.resolution = resolution(domain, D, tau_in, scheme)
         V = self.V = fem.functionspace(domain, ("Lagrange", 1))
@@ -285,6 +286,7 @@ class BatchedMonodomain:
         replicas are columns ((n, B): sparse products and gathers then move contiguous rows of
         B values), or, for the explicit stencil, (B, n_y, n_x) grids."""
         self.replica_steps += len(u) * steps
+        self.batch_steps += steps
         with self._threads():
             forcing = None if current is None else self._current @ current.T.to(self.dtype)
             stencil = self.scheme == "explicit" and self._grid is not None
