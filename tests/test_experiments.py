@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from unittest import mock
 
+import numpy as np
 import pytest
 import torch
 
@@ -229,6 +230,70 @@ def test_resolved_timing_bar_is_the_results_tables():
     assert round(means[best]["return"], 2) == 374.10 and means[best]["success"] == 0.85
     oracle = hindsight(rows)
     assert oracle["return"] == 477.3 and oracle["success"] == 1.0
+
+
+def shock_timing():
+    return runpy.run_path(str(ROOT / "experiments" / "atp_shock_timing.py"))
+
+
+def test_shock_timing_choice_finds_a_rule_the_readings_show():
+    """Labelled draws where one shock works exactly where the reading is positive (one such
+    decision per draw, elsewhere none): the leave-one-draw-out choice ends every draw, and its
+    policy shocks at that decision; draws not seen after their end (NaN) are skipped."""
+    module = shock_timing()
+    rng = np.random.default_rng(0)
+    draws, decisions = 12, 6
+    good = rng.integers(0, decisions, draws)
+    good[0] = 0
+    readings = -1.0 - rng.random((draws, decisions, 1))
+    readings[np.arange(draws), good, 0] = 1.0 + rng.random(draws)
+    readings[0, -1] = np.nan  # draw 0 ended before its last decision
+    x = module["features"](readings)
+    y = (readings[..., 0] > 0).astype(float)
+    k, theta, success = module["choose"](x, y, never=np.zeros(draws))
+    assert success == 1.0 and k in module["NEIGHBOURS"]
+    p = module["Neighbours"](x[~np.isnan(x[..., 0])], y[~np.isnan(x[..., 0])], k)
+    assert [module["first_over"](p(x[d]), theta) for d in range(1, draws)] == list(good[1:])
+
+
+def test_shock_once_runs_the_single_shock_schedule_of_its_decision():
+    """The policy of ``atp_shock_timing.py`` (one shock at the first decision where p > theta,
+    one object per episode) gives the episodes of the open-loop single shock at that decision:
+    the same rows, one shock each, on two held-out seeds and 2 replicas."""
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.envs.baselines import Schedule
+    from physicsrl.evaluation import run_jobs
+
+    module = shock_timing()
+    cfg, factory = module["make_env"](2, [*SMALL_ATP, "env.model.compile=false"])
+    env = factory(Coordinator())
+    from_decision_1 = lambda x: (np.atleast_2d(x)[:, -1] >= 1).astype(float)  # noqa: E731
+    seeds = held_out_seeds(2)
+    policy = module["ShockOnce"]
+    rows = run_jobs(env, [(policy(from_decision_1, 0.5), s) for s in seeds], {"shocks": 1})
+    assert rows == run_jobs(env, [(Schedule([1]), s) for s in seeds], {"shocks": 1})
+    assert [row["shocks"] for row in rows] == [1, 1]
+
+
+def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
+    """``label`` stores each draw's never-shock observations and its single shocks' outcomes
+    (continuing where it stopped); ``fit`` evaluates the chosen policy on the held-out seeds
+    (at most one shock each) and records its command."""
+    small = [*SMALL_ATP, "env.model.compile=false"]
+    arguments = ["--replicas", "4", "--out", str(tmp_path), *small]
+    run_script("atp_shock_timing.py", "label", "--draws", "4", *arguments)
+    chunk = torch.load(tmp_path / "atp_shock_timing_labels" / "chunk-000.pt")
+    assert chunk["seeds"] == [2_000_000_000 + i for i in range(4)]
+    assert chunk["observations"].shape == (4, 3, 20) and chunk["single"].shape == (4, 3)
+    written = (tmp_path / "atp_shock_timing_labels" / "chunk-000.pt").stat().st_mtime
+    run_script("atp_shock_timing.py", "label", "--draws", "4", *arguments)  # nothing to do
+    assert (tmp_path / "atp_shock_timing_labels" / "chunk-000.pt").stat().st_mtime == written
+    run_script("atp_shock_timing.py", "fit", "--seeds", "2", *arguments)
+    rows = list(csv.DictReader((tmp_path / "atp_shock_timing.csv").open()))
+    assert [int(r["seed"]) for r in rows] == held_out_seeds(2)
+    assert all(float(r["shocks"]) <= 1 for r in rows)
+    record = (tmp_path / "atp_shock_timing.txt").read_text()
+    assert "commit" in record and "4 labelled draws" in record
 
 
 def test_convergence_study_names_its_policies():

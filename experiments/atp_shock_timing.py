@@ -1,0 +1,207 @@
+"""Does the catheter tell when one shock works? A supervised reference for the timing variant.
+
+    python experiments/atp_shock_timing.py label --draws 96     # ~1.5 core-hours
+    python experiments/atp_shock_timing.py fit                  # a few minutes
+
+The timing variant (``+experiment=atp_timing``) on the bar's simulator (torch, float32,
+compiled). ``label``: for draws outside the held-out seeds (seeds 2000000000, 2000000001, ...),
+the never-shock episode, whose observation at decision k is what any policy sees there before
+its first shock, and one episode per decision k with a single shock at k: whether it ends the
+arrhythmia. 25 episodes per draw (24 decisions), in chunks of 4 draws
+(``<out>/atp_shock_timing_labels/chunk-NNN.pt``; ``label`` again continues).
+
+``fit``: the label y(draw, k) = the single shock at k succeeds, the features x(draw, k) = the
+catheter's 20 readings and k, standardised. A k-nearest-neighbour estimate p(x) of P(y = 1 | x)
+and a policy that shocks once, at the first decision where p > theta (never otherwise). The
+neighbours and theta are chosen by leave-one-draw-out success on the labelled draws only; the
+policy then runs in the env on the held-out seeds of the results table, beside the bar (the
+best open-loop schedule, single shock at 0: ``atp_timing_open_loop.csv``). Writes
+``<out>/atp_shock_timing.csv`` (per seed), ``atp_shock_timing.txt`` (command, commit, choice
+and means) and prints the learning curve: the held-out success with the first 8, 16, ...
+labelled draws.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from physicsrl import builders
+from physicsrl.cli.command import compose
+from physicsrl.config import held_out_seeds
+from physicsrl.coordinated import abort_on_error
+from physicsrl.envs.baselines import Constant, Policy, Schedule
+from physicsrl.envs.groups import environments
+from physicsrl.envs.members import spread_episodes
+from physicsrl.evaluation import run_jobs
+from physicsrl.tables import mean_metrics, write_csv
+
+FIRST_DRAW = 2_000_000_000  # labelled draws: outside the held-out seeds and training's
+PER_CHUNK = 4
+LABELS = "atp_shock_timing_labels"  # the chunks' folder under --out
+NEIGHBOURS = (5, 15, 30)
+THRESHOLDS = np.round(np.linspace(0.1, 0.9, 17), 2)
+
+
+def make_env(replicas: int, overrides: list[str]):
+    """The timing variant on the bar's simulator (``overrides`` last), and its env factory."""
+    simulator = ["env.model.backend=torch", "env.model.compile=true", "env.model.dtype=float32"]
+    settings = ["+experiment=atp_timing", *simulator, f"env.replicas={replicas}", *overrides]
+    cfg = compose("train", settings)
+    return cfg, lambda coordinator: builders.make_env(cfg, coordinator)
+
+
+def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
+    """The observations and single-shock outcomes of ``draws`` draws, chunk by chunk."""
+    cfg, factory = make_env(replicas, overrides)
+    decisions = cfg.env.max_decisions
+    (out / LABELS).mkdir(parents=True, exist_ok=True)
+    with abort_on_error(), environments(factory, 1) as env:
+        for chunk in range(-(-draws // PER_CHUNK)):
+            path = out / LABELS / f"chunk-{chunk:03d}.pt"
+            if path.exists():
+                continue
+            seeds = [FIRST_DRAW + PER_CHUNK * chunk + i for i in range(PER_CHUNK)]
+            jobs = [(Constant(0), s) for s in seeds]
+            jobs += [(Schedule([k]), s) for s in seeds for k in range(decisions)]
+            with torch.no_grad():
+                rollouts = spread_episodes(env, jobs, 10_000)
+            # decisions after a never-shock episode's end (it ended by itself) are not seen: NaN
+            size = rollouts[0]["observation"].shape[-1]
+            observations = torch.full((PER_CHUNK, decisions, size), float("nan"))
+            for i, rollout in enumerate(rollouts[:PER_CHUNK]):
+                seen = min(decisions, rollout.shape[0])
+                observations[i, :seen] = rollout["observation"][:seen]
+            success = torch.tensor([float(r["next", "success"][-1]) for r in rollouts])
+            torch.save(
+                {
+                    "seeds": seeds,
+                    "observations": observations,
+                    "never": success[:PER_CHUNK],
+                    "single": success[PER_CHUNK:].reshape(PER_CHUNK, decisions),
+                },
+                path,
+            )
+            print(
+                f"draws {seeds[0]}-{seeds[-1]}: {int(success[PER_CHUNK:].sum())} of "
+                f"{PER_CHUNK * decisions} single shocks end the arrhythmia",
+                flush=True,
+            )
+
+
+def features(observations: np.ndarray) -> np.ndarray:
+    """(draws, decisions, readings + 1): the readings and the decision index."""
+    draws, decisions, _ = observations.shape
+    step = np.broadcast_to(np.arange(decisions, dtype=float)[None, :, None], (draws, decisions, 1))
+    return np.concatenate([observations, step], -1)
+
+
+class Neighbours:
+    """p(x) = the fraction of successes among the ``k`` labelled points nearest to x
+    (Euclidean, after standardising with the labelled points' mean and deviation)."""
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, k: int):
+        self.mean, self.scale = x.mean(0), x.std(0) + 1e-9
+        self.x, self.y, self.k = (x - self.mean) / self.scale, y, k
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        z = (np.atleast_2d(x) - self.mean) / self.scale
+        distances = ((z[:, None] - self.x[None]) ** 2).sum(-1)
+        return self.y[np.argsort(distances, 1)[:, : self.k]].mean(1)
+
+
+def first_over(p: np.ndarray, theta: float) -> int:
+    """The first decision with p > theta (NaN: not reached), -1 for none."""
+    over = np.flatnonzero(np.nan_to_num(p, nan=-1.0) > theta)
+    return int(over[0]) if len(over) else -1
+
+
+def choose(x: np.ndarray, y: np.ndarray, never: np.ndarray) -> tuple[int, float, float]:
+    """(neighbours, theta, success) maximising the leave-one-draw-out success of the policy on
+    the labelled draws (x: (draws, decisions, features), NaN where not seen; y: (draws,
+    decisions))."""
+    seen = ~np.isnan(x[..., 0])
+    best = (0, 0.0, -1.0)
+    for k in NEIGHBOURS:
+        p = np.full(y.shape, np.nan)
+        for d in range(len(x)):
+            others = np.arange(len(x)) != d
+            p[d, seen[d]] = Neighbours(x[others][seen[others]], y[others][seen[others]], k)(
+                x[d][seen[d]]
+            )
+        for theta in THRESHOLDS:
+            shots = [first_over(p[d], theta) for d in range(len(x))]
+            success = np.mean([y[d, s] if s >= 0 else never[d] for d, s in enumerate(shots)])
+            if success > best[2]:
+                best = (k, float(theta), float(success))
+    return best
+
+
+class ShockOnce(Policy):
+    """One shock at the first decision where ``p(observation, decision) > theta``; one object
+    per episode (it remembers that it shocked)."""
+
+    def __init__(self, p: Neighbours, theta: float):
+        self.p, self.theta, self.shocked = p, theta, False
+
+    def action(self, tensordict):
+        if self.shocked:
+            return 0
+        x = np.append(tensordict["observation"].double().numpy(), float(tensordict["step"]))
+        self.shocked = bool(self.p(x)[0] > self.theta)
+        return int(self.shocked)
+
+
+def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
+    chunks = [torch.load(p) for p in sorted((out / LABELS).glob("chunk-*.pt"))]
+    x = features(np.concatenate([c["observations"].double().numpy() for c in chunks]))
+    y = np.concatenate([c["single"].numpy() for c in chunks]).astype(float)
+    never = np.concatenate([c["never"].numpy() for c in chunks]).astype(float)
+    seen = ~np.isnan(x[..., 0])
+    held_out = held_out_seeds(seeds)
+    _, factory = make_env(replicas, overrides)
+    lines = []
+    with abort_on_error(), environments(factory, 1) as env:
+        sizes = [n for n in (8, 16, 32, 64) if n < len(x)] + [len(x)]
+        for n in sizes:  # the learning curve: the first n labelled draws
+            k, theta, cv = choose(x[:n], y[:n], never[:n])
+            p = Neighbours(x[:n][seen[:n]], y[:n][seen[:n]], k)
+            rows = run_jobs(env, [(ShockOnce(p, theta), s) for s in held_out], {"shocks": 1})
+            means = mean_metrics(rows)
+            lines.append(
+                f"{n} labelled draws ({int(y[:n][seen[:n]].sum())} successes of "
+                f"{int(seen[:n].sum())} single shocks): neighbours {k}, theta {theta} "
+                f"(leave-one-draw-out success {cv:.0%}); held-out: return {means['return']:.2f}, "
+                f"success {means['success']:.0%}, shocks {means['shocks']:.2f}"
+            )
+            print(lines[-1], flush=True)
+    write_csv(out / "atp_shock_timing.csv", [{"policy": "shock once (k-NN)", **r} for r in rows])
+    call = shlex.join(["python", *sys.argv])
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True)
+    text = f"{call}\ncommit {commit.stdout.strip()}\n" + "\n".join(lines) + "\n"
+    (out / "atp_shock_timing.txt").write_text(text)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("stage", choices=("label", "fit"))
+    parser.add_argument("--draws", type=int, default=96)
+    parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit)")
+    parser.add_argument("--replicas", type=int, default=100)
+    parser.add_argument("--out", type=Path, default=Path("experiments/results"))
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
+    args = parser.parse_intermixed_args()
+    if args.stage == "label":
+        label(args.draws, args.replicas, args.out, args.overrides)
+    else:
+        fit(args.out, args.seeds, args.replicas, args.overrides)
+
+
+if __name__ == "__main__":
+    main()
