@@ -1,6 +1,6 @@
 """Does the catheter tell when one shock works? A supervised reference for the timing variant.
 
-    python experiments/atp_shock_timing.py label --draws 96     # ~1.5 core-hours
+    python experiments/atp_shock_timing.py label --draws 96     # ~2 core-hours
     python experiments/atp_shock_timing.py fit                  # a few minutes
 
 The timing variant (``+experiment=atp_timing``) on the bar's simulator (torch, float32,
