@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
@@ -54,7 +53,7 @@ from physicsrl.envs.baselines import atp_baselines, decisions, open_loop_schedul
 from physicsrl.envs.groups import environments
 from physicsrl.envs.task import TASKS
 from physicsrl.evaluation import compare
-from physicsrl.tables import mean_metrics, read_per_policy, write_csv
+from physicsrl.tables import mean_metrics, read_per_policy, source_commit, write_csv
 from physicsrl.training import n_environments
 
 POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order
@@ -102,7 +101,7 @@ def main() -> None:
             }
         args.out.mkdir(parents=True, exist_ok=True)
         record = args.out / f"{name}.txt"
-        call = f"{shlex.join(['python', *sys.argv])}\ncommit {commit()}\n"
+        call = f"{shlex.join(['python', *sys.argv])}\ncommit {source_commit()}\n"
         if done:  # a resumed search: every call that computed rows stays on record
             record.write_text(record.read_text() + call)
         else:
@@ -165,15 +164,6 @@ def hindsight(rows: dict[str, list[dict]]) -> dict:
 
 def rounded(row: dict) -> dict:
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}
-
-
-def commit() -> str:
-    return (
-        subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
-        ).stdout.strip()
-        or "unknown"
-    )
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ import argparse
 import csv
 import re
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule
 from physicsrl.envs.groups import GroupedEnv, environments
 from physicsrl.evaluation import run_episodes
+from physicsrl.tables import source_commit
 
 EXPLICIT_ABOVE = 250
 FIELDS = ("cells", "scheme", "policy", "seed", "return", "success", "shocks", "length")
@@ -70,11 +70,8 @@ def main() -> None:
         if env is None:  # a rank that served an environment
             return
         args.out.mkdir(parents=True, exist_ok=True)
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
-        ).stdout.strip()
         with (args.out / f"{args.experiment}_convergence.txt").open("a") as log:
-            log.write(f"{shlex.join(['python', *sys.argv])}  # commit {commit or 'unknown'}\n")
+            log.write(f"{shlex.join(['python', *sys.argv])}  # commit {source_commit()}\n")
         done = set()
         if results.exists():
             with results.open() as file:

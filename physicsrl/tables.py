@@ -7,6 +7,7 @@ after or without the simulation.
 from __future__ import annotations
 
 import csv
+import subprocess
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
@@ -59,3 +60,11 @@ def read_per_policy(path: str | Path) -> dict[str, list[dict]]:
             policy = row.pop("policy")
             rows.setdefault(policy, []).append({k: number(v) for k, v in row.items()})
     return rows
+
+
+def source_commit() -> str:
+    """The git commit of this source tree, for the record beside a results file ("unknown"
+    outside a git checkout)."""
+    git = ["git", "rev-parse", "HEAD"]
+    result = subprocess.run(git, capture_output=True, text=True, cwd=Path(__file__).parent)
+    return result.stdout.strip() or "unknown"
