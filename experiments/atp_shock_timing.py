@@ -8,7 +8,8 @@ compiled). ``label``: for draws outside the held-out seeds (seeds 2000000000, 20
 the never-shock episode, whose observation at decision k is what any policy sees there before
 its first shock, and one episode per decision k with a single shock at k: whether it ends the
 arrhythmia. 25 episodes per draw (24 decisions), in chunks of 4 draws
-(``<out>/atp_shock_timing_labels/chunk-NNN.pt``; ``label`` again continues).
+(``<out>/atp_shock_timing_labels/chunk-NNN.pt``, the commands in its ``labels.txt``;
+``label`` again continues).
 
 ``fit``: the label y(draw, k) = the single shock at k succeeds, the features x(draw, k) = the
 catheter's 20 readings and k, standardised. A k-nearest-neighbour estimate p(x) of P(y = 1 | x)
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
@@ -39,8 +39,8 @@ from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, Policy, Schedule
 from physicsrl.envs.groups import environments
 from physicsrl.envs.members import spread_episodes
-from physicsrl.evaluation import run_jobs
-from physicsrl.tables import mean_metrics, write_csv
+from physicsrl.evaluation import MAX_STEPS, run_jobs
+from physicsrl.tables import mean_metrics, source_commit, write_csv
 
 FIRST_DRAW = 2_000_000_000  # labelled draws: outside the held-out seeds and training's
 PER_CHUNK = 4
@@ -62,6 +62,8 @@ def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
     cfg, factory = make_env(replicas, overrides)
     decisions = cfg.env.max_decisions
     (out / LABELS).mkdir(parents=True, exist_ok=True)
+    with (out / LABELS / "labels.txt").open("a") as record:  # every call that adds chunks
+        record.write(f"{shlex.join(['python', *sys.argv])}  # commit {source_commit()}\n")
     with abort_on_error(), environments(factory, 1) as env:
         for chunk in range(-(-draws // PER_CHUNK)):
             path = out / LABELS / f"chunk-{chunk:03d}.pt"
@@ -71,7 +73,7 @@ def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
             jobs = [(Constant(0), s) for s in seeds]
             jobs += [(Schedule([k]), s) for s in seeds for k in range(decisions)]
             with torch.no_grad():
-                rollouts = spread_episodes(env, jobs, 10_000)
+                rollouts = spread_episodes(env, jobs, MAX_STEPS)
             # decisions after a never-shock episode's end (it ended by itself) are not seen: NaN
             size = rollouts[0]["observation"].shape[-1]
             observations = torch.full((PER_CHUNK, decisions, size), float("nan"))
@@ -183,8 +185,7 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
             print(lines[-1], flush=True)
     write_csv(out / "atp_shock_timing.csv", [{"policy": "shock once (k-NN)", **r} for r in rows])
     call = shlex.join(["python", *sys.argv])
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True)
-    text = f"{call}\ncommit {commit.stdout.strip()}\n" + "\n".join(lines) + "\n"
+    text = f"{call}\ncommit {source_commit()}\n" + "\n".join(lines) + "\n"
     (out / "atp_shock_timing.txt").write_text(text)
 
 

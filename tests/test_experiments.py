@@ -288,6 +288,8 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     written = (tmp_path / "atp_shock_timing_labels" / "chunk-000.pt").stat().st_mtime
     run_script("atp_shock_timing.py", "label", "--draws", "4", *arguments)  # nothing to do
     assert (tmp_path / "atp_shock_timing_labels" / "chunk-000.pt").stat().st_mtime == written
+    calls = (tmp_path / "atp_shock_timing_labels" / "labels.txt").read_text().splitlines()
+    assert len(calls) == 2 and all("label --draws 4" in c and "# commit" in c for c in calls)
     run_script("atp_shock_timing.py", "fit", "--seeds", "2", *arguments)
     rows = list(csv.DictReader((tmp_path / "atp_shock_timing.csv").open()))
     assert [int(r["seed"]) for r in rows] == held_out_seeds(2)
