@@ -23,7 +23,8 @@ the named open-loop schedules (comma-separated display names).
 (:func:`~physicsrl.envs.baselines.open_loop_schedules`: never, always, one shock at each
 decision, every k-th decision from each offset for k = 2..6) and names the best: the bar of
 closed-loop control, and the per-seed hindsight oracle of the schedules (:func:`hindsight`).
-Seeds are the held-out evaluation seeds 1000000000, 1000000001, ...
+Seeds are the held-out evaluation seeds 1000000000, 1000000001, ..., or with ``--first-seed
+S`` the seeds S, S + 1, ... (e.g. the draws labelled by ``atp_shock_timing.py``).
 
 Writes, on the leader, ``<name>.csv`` (one row per policy: mean return, success rate, mean
 shocks and decisions), ``<name>_per_seed.csv`` (after each policy) and ``<name>.txt`` (the
@@ -63,6 +64,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--experiment", default="atp", help="the preset: atp | atp_wide | ...")
     parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument(
+        "--first-seed", type=int, help="seeds FIRST, FIRST+1, ... instead of the held-out seeds"
+    )
     parser.add_argument("--open-loop", action="store_true", help="search every open-loop schedule")
     parser.add_argument("--select-seeds", type=int, default=5)
     parser.add_argument("--single-shock", type=int, help="the single shock's decision (no search)")
@@ -78,12 +82,16 @@ def main() -> None:
         parser.error(f"--policies: unknown {unknown}; use {','.join(POLICIES)}")
     name = f"{args.experiment}_{'open_loop' if args.open_loop else 'baselines'}"
     settings = {"experiment": args.experiment, "seeds": args.seeds, "overrides": args.overrides}
+    if args.first_seed is not None:
+        settings["first_seed"] = args.first_seed
     cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
     make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
         if env is None:  # a rank that served an environment
             return
         seeds = held_out_seeds(args.seeds)
+        if args.first_seed is not None:
+            seeds = [args.first_seed + i for i in range(args.seeds)]
         settings["draws"] = draws(cfg, seeds)
         done = previous_rows(args.out / name, settings) if args.resume else {}
         if args.open_loop:

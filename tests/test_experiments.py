@@ -131,10 +131,14 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
 
 
 def test_atp_baselines_script_tables_each_policy(tmp_path):
-    """The baseline script on a small ATP preset: one row per policy, shocks as scheduled."""
+    """The baseline script on a small ATP preset: one row per policy, shocks as scheduled, on
+    the seeds from --first-seed."""
     small = ["env.mesh.cells=20", "env.max_decisions=4", "env.extra_waits=2"]
     arguments = ["--seeds", "2", "--select-seeds", "1", "--policies", "never,always,single"]
+    arguments += ["--first-seed", "7"]
     run_script("atp_baselines.py", *arguments, "--out", str(tmp_path), *small)
+    per_seed = csv.DictReader((tmp_path / "atp_baselines_per_seed.csv").open())
+    assert sorted({int(r["seed"]) for r in per_seed}) == [7, 8]
     rows = {r["policy"]: r for r in csv.DictReader((tmp_path / "atp_baselines.csv").open())}
     assert list(rows)[:2] == ["never shock", "always shock"] and len(rows) == 3
     assert float(rows["never shock"]["shocks"]) == 0 and float(rows["always shock"]["shocks"]) == 4
