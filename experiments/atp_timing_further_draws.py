@@ -1,0 +1,102 @@
+"""The timing variant's agent against the open-loop schedules on further draws, paired per draw.
+
+    python experiments/atp_timing_further_draws.py
+
+The table's 20 held-out draws measure a success rate to about +-11 points; this compares the
+stored run-4 policy with the schedules on the draws labelled by ``atp_shock_timing.py`` (seeds
+2000000000, ...), which neither training nor any choice about the policy used. It reads, under
+``--out``:
+
+- ``atp_timing_labelled_draws/atp_timing_agent_eval.csv``: the policy on those draws
+  (``physicsrl-eval``, its command in ``atp_timing_agent.txt`` there);
+- ``atp_timing_labelled_draws/atp_timing_open_loop_per_seed.csv``: every open-loop schedule
+  on the first of them (``atp_baselines.py --open-loop --first-seed 2000000000``);
+- ``atp_shock_timing_labels/``: whether a single shock at each decision ends each draw,
+  and the supervised reference's leave-one-draw-out choice (``atp_shock_timing.txt``).
+
+Prints a Markdown table: mean return, success and shocks, and for each other policy the draws
+that only the agent ends and those that only the other policy ends.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from atp_baselines import hindsight  # noqa: E402
+from atp_shock_timing import LABELS, Neighbours, features, first_over  # noqa: E402
+
+from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
+
+FOLDER = "atp_timing_labelled_draws"
+REFERENCE = (5, 0.4)  # the supervised reference's neighbours and theta at 96 labelled draws
+
+
+def labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """(seeds, single (draws, decisions), reference (draws,)): the single-shock outcomes and
+    the success of the supervised reference on each draw with that draw left out."""
+    chunks = [torch.load(path) for path in sorted((out / LABELS).glob("chunk-*.pt"))]
+    seeds = [seed for chunk in chunks for seed in chunk["seeds"]]
+    x = features(np.concatenate([c["observations"].double().numpy() for c in chunks]))
+    single = np.concatenate([c["single"].numpy() for c in chunks]).astype(float)
+    never = np.concatenate([c["never"].numpy() for c in chunks]).astype(float)
+    seen = ~np.isnan(x[..., 0])
+    k, theta = REFERENCE
+    reference = np.empty(len(x))
+    for d in range(len(x)):
+        others = np.arange(len(x)) != d
+        p = np.full(x.shape[1], np.nan)
+        p[seen[d]] = Neighbours(x[others][seen[others]], single[others][seen[others]], k)(
+            x[d][seen[d]]
+        )
+        shot = first_over(p, theta)
+        reference[d] = single[d, shot] if shot >= 0 else never[d]
+    return seeds, single, reference
+
+
+def row(name: str, draws: int, means: dict, success=None, agent=None) -> str:
+    """A table row; with ``success`` and ``agent`` (per draw), the draws ended by one only."""
+    cells = [f"{means[k]:.2f}" if k in means else "" for k in ("return", "success", "shocks")]
+    cells[1] = f"{100 * means['success']:.1f}%"
+    paired = "" if success is None else f"{(agent > success).sum()} / {(success > agent).sum()}"
+    return f"| {name} | {draws} | {' | '.join(cells)} | {paired} |"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("experiments/results"))
+    out = parser.parse_args().out
+    seeds, single, reference = labels(out)
+    agent_rows = read_per_policy(out / FOLDER / "atp_timing_agent_eval.csv")["greedy DQN"]
+    by_seed = {int(r["seed"]): r for r in agent_rows}
+    schedules = read_per_policy(out / FOLDER / "atp_timing_open_loop_per_seed.csv")
+    searched = [int(r["seed"]) for r in next(iter(schedules.values()))]
+    print("| policy | draws | return | success | shocks | draws only the agent ends / only it |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for draws in (searched, seeds):
+        index = [seeds.index(s) for s in draws]
+        rows = [by_seed[s] for s in draws]
+        agent = np.array([r["success"] for r in rows], float)
+        print(row("run 4, iteration 100", len(draws), mean_metrics(rows)))
+        if draws == searched:
+            means = {p: mean_metrics(r) for p, r in schedules.items()}
+            best = max(means, key=lambda p: (means[p]["return"], means[p]["success"]))
+            won = np.array([r["success"] for r in schedules[best]], float)
+            print(row(f"best open-loop schedule: {best}", len(draws), means[best], won, agent))
+            print(row("hindsight oracle of the schedules", len(draws), hindsight(schedules)))
+        best_single = int(single[index].mean(0).argmax())
+        won = single[index, best_single]
+        name = f"single shock at {best_single} (labels)"
+        print(row(name, len(draws), {"success": won.mean()}, won, agent))
+        won = reference[index]
+        name = "supervised reference, leave-one-draw-out (labels)"
+        print(row(name, len(draws), {"success": won.mean()}, won, agent))
+
+
+if __name__ == "__main__":
+    main()
