@@ -3,19 +3,19 @@
     python experiments/atp_timing_further_draws.py
 
 The table's 20 held-out draws measure a success rate to about +-11 points; this compares the
-stored run-4 policy with the schedules on the draws labelled by ``atp_shock_timing.py`` (seeds
-2000000000, ...), which neither training nor any choice about the policy used. It reads, under
-``--out``:
+stored run-4 policy (and run 2's) with the schedules on the draws labelled by
+``atp_shock_timing.py`` (seeds 2000000000, ...), which neither training nor any choice about
+the policies used. It reads, under ``--out``:
 
-- ``atp_timing_labelled_draws/atp_timing_agent_eval.csv``: the policy on those draws
-  (``physicsrl-eval``, its command in ``atp_timing_agent.txt`` there);
+- ``atp_timing_labelled_draws/atp_timing_agent_eval.csv`` (and ``..._run2_...``): the
+  policies on those draws (``physicsrl-eval``, the commands in ``atp_timing_agent.txt`` there);
 - ``atp_timing_labelled_draws/atp_timing_open_loop_per_seed.csv``: every open-loop schedule
   on the first of them (``atp_baselines.py --open-loop --first-seed 2000000000``);
 - ``atp_shock_timing_labels/``: whether a single shock at each decision ends each draw,
   and the supervised reference's leave-one-draw-out choice (``atp_shock_timing.txt``).
 
 Prints a Markdown table: mean return, success and shocks, and for each other policy the draws
-that only the agent ends and those that only the other policy ends.
+that only run 4 ends and those that only the other policy ends.
 """
 
 from __future__ import annotations
@@ -34,6 +34,10 @@ from atp_shock_timing import LABELS, Neighbours, features, first_over  # noqa: E
 from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
 FOLDER = "atp_timing_labelled_draws"
+AGENTS = {  # stored policies' evaluations on the labelled draws; the first is paired with all
+    "run 4, iteration 100": "atp_timing_agent_eval.csv",
+    "run 2, iteration 90": "atp_timing_run2_agent_eval.csv",
+}
 REFERENCE = (5, 0.4)  # the supervised reference's neighbours and theta at 96 labelled draws
 
 
@@ -72,17 +76,24 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     out = parser.parse_args().out
     seeds, single, reference = labels(out)
-    agent_rows = read_per_policy(out / FOLDER / "atp_timing_agent_eval.csv")["greedy DQN"]
-    by_seed = {int(r["seed"]): r for r in agent_rows}
+    by_seed = {
+        name: {int(r["seed"]): r for r in read_per_policy(out / FOLDER / csv)["greedy DQN"]}
+        for name, csv in AGENTS.items()
+    }
     schedules = read_per_policy(out / FOLDER / "atp_timing_open_loop_per_seed.csv")
     searched = [int(r["seed"]) for r in next(iter(schedules.values()))]
-    print("| policy | draws | return | success | shocks | draws only the agent ends / only it |")
+    print(
+        "| policy | draws | return | success | shocks | draws only run 4 ends / only this policy |"
+    )
     print("| --- | --- | --- | --- | --- | --- |")
     for draws in (searched, seeds):
         index = [seeds.index(s) for s in draws]
-        rows = [by_seed[s] for s in draws]
-        agent = np.array([r["success"] for r in rows], float)
-        print(row("run 4, iteration 100", len(draws), mean_metrics(rows)))
+        agent = None
+        for name, rows in ((name, [runs[s] for s in draws]) for name, runs in by_seed.items()):
+            won = np.array([r["success"] for r in rows], float)
+            paired = () if agent is None else (won, agent)
+            print(row(name, len(draws), mean_metrics(rows), *paired))
+            agent = won if agent is None else agent
         if draws == searched:
             means = {p: mean_metrics(r) for p, r in schedules.items()}
             best = max(means, key=lambda p: (means[p]["return"], means[p]["success"]))

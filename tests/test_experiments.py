@@ -220,6 +220,7 @@ def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
     )
     assert "| hindsight oracle of the schedules | 48 | 333.73 | 72.9% |  |  |" in lines
     assert "| run 4, iteration 100 | 96 | 264.73 | 62.5% | 2.36 |  |" in lines
+    assert "| run 2, iteration 90 | 96 | 232.56 | 60.4% | 4.41 | 7 / 5 |" in lines
     assert "| single shock at 0 (labels) | 96 |  | 31.2% |  | 33 / 3 |" in lines
     reference = "| supervised reference, leave-one-draw-out (labels) | 96 |  | 50.0% |  | 15 / 3 |"
     assert reference in lines
