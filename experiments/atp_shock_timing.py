@@ -124,24 +124,36 @@ def first_over(p: np.ndarray, theta: float) -> int:
     return int(over[0]) if len(over) else -1
 
 
+def leave_one_draw_out(x: np.ndarray, y: np.ndarray, k: int) -> np.ndarray:
+    """(draws, decisions): p of each labelled draw's points from the other draws' labels
+    (x: (draws, decisions, features), NaN where not seen; y: (draws, decisions))."""
+    seen = ~np.isnan(x[..., 0])
+    p = np.full(y.shape, np.nan)
+    for d in range(len(x)):
+        others = np.arange(len(x)) != d
+        p[d, seen[d]] = Neighbours(x[others][seen[others]], y[others][seen[others]], k)(
+            x[d][seen[d]]
+        )
+    return p
+
+
+def outcomes(p: np.ndarray, y: np.ndarray, never: np.ndarray, theta: float) -> np.ndarray:
+    """(draws,): whether the policy that shocks once, at the first decision with p > theta,
+    ends each draw (``never``: the draw's outcome without a shock)."""
+    shots = [first_over(p[d], theta) for d in range(len(p))]
+    return np.array([y[d, s] if s >= 0 else never[d] for d, s in enumerate(shots)])
+
+
 def choose(x: np.ndarray, y: np.ndarray, never: np.ndarray) -> tuple[int, float, float]:
     """(neighbours, theta, success) maximising the leave-one-draw-out success of the policy on
-    the labelled draws (x: (draws, decisions, features), NaN where not seen; y: (draws,
-    decisions))."""
-    seen = ~np.isnan(x[..., 0])
+    the labelled draws."""
     best = (0, 0.0, -1.0)
     for k in NEIGHBOURS:
-        p = np.full(y.shape, np.nan)
-        for d in range(len(x)):
-            others = np.arange(len(x)) != d
-            p[d, seen[d]] = Neighbours(x[others][seen[others]], y[others][seen[others]], k)(
-                x[d][seen[d]]
-            )
+        p = leave_one_draw_out(x, y, k)
         for theta in THRESHOLDS:
-            shots = [first_over(p[d], theta) for d in range(len(x))]
-            success = np.mean([y[d, s] if s >= 0 else never[d] for d, s in enumerate(shots)])
+            success = float(outcomes(p, y, never, theta).mean())
             if success > best[2]:
-                best = (k, float(theta), float(success))
+                best = (k, float(theta), success)
     return best
 
 

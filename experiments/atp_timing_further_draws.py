@@ -29,7 +29,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from atp_baselines import hindsight  # noqa: E402
-from atp_shock_timing import LABELS, Neighbours, features, first_over  # noqa: E402
+from atp_shock_timing import LABELS, features, leave_one_draw_out, outcomes  # noqa: E402
 
 from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
@@ -49,18 +49,8 @@ def labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray]:
     x = features(np.concatenate([c["observations"].double().numpy() for c in chunks]))
     single = np.concatenate([c["single"].numpy() for c in chunks]).astype(float)
     never = np.concatenate([c["never"].numpy() for c in chunks]).astype(float)
-    seen = ~np.isnan(x[..., 0])
     k, theta = REFERENCE
-    reference = np.empty(len(x))
-    for d in range(len(x)):
-        others = np.arange(len(x)) != d
-        p = np.full(x.shape[1], np.nan)
-        p[seen[d]] = Neighbours(x[others][seen[others]], single[others][seen[others]], k)(
-            x[d][seen[d]]
-        )
-        shot = first_over(p, theta)
-        reference[d] = single[d, shot] if shot >= 0 else never[d]
-    return seeds, single, reference
+    return seeds, single, outcomes(leave_one_draw_out(x, single, k), single, never, theta)
 
 
 def row(name: str, draws: int, means: dict, success=None, agent=None) -> str:
@@ -88,12 +78,11 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- |")
     for draws in (searched, seeds):
         index = [seeds.index(s) for s in draws]
-        agent = None
-        for name, rows in ((name, [runs[s] for s in draws]) for name, runs in by_seed.items()):
+        runs = {name: [by_seed[name][s] for s in draws] for name in AGENTS}
+        agent = np.array([r["success"] for r in next(iter(runs.values()))], float)
+        for i, (name, rows) in enumerate(runs.items()):
             won = np.array([r["success"] for r in rows], float)
-            paired = () if agent is None else (won, agent)
-            print(row(name, len(draws), mean_metrics(rows), *paired))
-            agent = won if agent is None else agent
+            print(row(name, len(draws), mean_metrics(rows), *((won, agent) if i else ())))
         if draws == searched:
             means = {p: mean_metrics(r) for p, r in schedules.items()}
             best = max(means, key=lambda p: (means[p]["return"], means[p]["success"]))
