@@ -89,9 +89,10 @@ def main() -> None:
     with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
         if env is None:  # a rank that served an environment
             return
-        seeds = held_out_seeds(args.seeds)
-        if args.first_seed is not None:
-            seeds = [args.first_seed + i for i in range(args.seeds)]
+        first = args.first_seed
+        seeds = (
+            held_out_seeds(args.seeds) if first is None else list(range(first, first + args.seeds))
+        )
         settings["draws"] = draws(cfg, seeds)
         done = previous_rows(args.out / name, settings) if args.resume else {}
         if args.open_loop:

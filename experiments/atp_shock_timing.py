@@ -97,6 +97,17 @@ def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
             )
 
 
+def load_labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
+    """The stored labels under ``out``: (seeds, x (draws, decisions, features), y (draws,
+    decisions), never (draws,))."""
+    chunks = [torch.load(path) for path in sorted((out / LABELS).glob("chunk-*.pt"))]
+    seeds = [seed for chunk in chunks for seed in chunk["seeds"]]
+    x = features(np.concatenate([c["observations"].double().numpy() for c in chunks]))
+    y = np.concatenate([c["single"].numpy() for c in chunks]).astype(float)
+    never = np.concatenate([c["never"].numpy() for c in chunks]).astype(float)
+    return seeds, x, y, never
+
+
 def features(observations: np.ndarray) -> np.ndarray:
     """(draws, decisions, readings + 1): the readings and the decision index."""
     draws, decisions, _ = observations.shape
@@ -173,10 +184,7 @@ class ShockOnce(Policy):
 
 
 def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
-    chunks = [torch.load(p) for p in sorted((out / LABELS).glob("chunk-*.pt"))]
-    x = features(np.concatenate([c["observations"].double().numpy() for c in chunks]))
-    y = np.concatenate([c["single"].numpy() for c in chunks]).astype(float)
-    never = np.concatenate([c["never"].numpy() for c in chunks]).astype(float)
+    _, x, y, never = load_labels(out)
     seen = ~np.isnan(x[..., 0])
     held_out = held_out_seeds(seeds)
     _, factory = make_env(replicas, overrides)

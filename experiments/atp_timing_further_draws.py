@@ -25,11 +25,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from atp_baselines import hindsight  # noqa: E402
-from atp_shock_timing import LABELS, features, leave_one_draw_out, outcomes  # noqa: E402
+from atp_shock_timing import choose, leave_one_draw_out, load_labels, outcomes  # noqa: E402
 
 from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
@@ -38,18 +37,14 @@ AGENTS = {  # stored policies' evaluations on the labelled draws; the first is p
     "run 4, iteration 100": "atp_timing_agent_eval.csv",
     "run 2, iteration 90": "atp_timing_run2_agent_eval.csv",
 }
-REFERENCE = (5, 0.4)  # the supervised reference's neighbours and theta at 96 labelled draws
 
 
 def labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray]:
     """(seeds, single (draws, decisions), reference (draws,)): the single-shock outcomes and
-    the success of the supervised reference on each draw with that draw left out."""
-    chunks = [torch.load(path) for path in sorted((out / LABELS).glob("chunk-*.pt"))]
-    seeds = [seed for chunk in chunks for seed in chunk["seeds"]]
-    x = features(np.concatenate([c["observations"].double().numpy() for c in chunks]))
-    single = np.concatenate([c["single"].numpy() for c in chunks]).astype(float)
-    never = np.concatenate([c["never"].numpy() for c in chunks]).astype(float)
-    k, theta = REFERENCE
+    the success of the supervised reference (its neighbours and theta as ``fit`` chooses them
+    from all the labels) on each draw with that draw left out."""
+    seeds, x, single, never = load_labels(out)
+    k, theta, _ = choose(x, single, never)
     return seeds, single, outcomes(leave_one_draw_out(x, single, k), single, never, theta)
 
 
@@ -82,7 +77,8 @@ def main() -> None:
         agent = np.array([r["success"] for r in next(iter(runs.values()))], float)
         for i, (name, rows) in enumerate(runs.items()):
             won = np.array([r["success"] for r in rows], float)
-            print(row(name, len(draws), mean_metrics(rows), *((won, agent) if i else ())))
+            paired = (won, agent) if i else (None, None)  # the first is run 4 itself
+            print(row(name, len(draws), mean_metrics(rows), *paired))
         if draws == searched:
             means = {p: mean_metrics(r) for p, r in schedules.items()}
             best = max(means, key=lambda p: (means[p]["return"], means[p]["success"]))
