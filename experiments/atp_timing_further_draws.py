@@ -9,13 +9,16 @@ the policies used. It reads, under ``--out``:
 
 - ``atp_timing_labelled_draws/atp_timing_agent_eval.csv`` (and ``..._run2_...``): the
   policies on those draws (``physicsrl-eval``, the commands in ``atp_timing_agent.txt`` there);
-- ``atp_timing_labelled_draws/atp_timing_open_loop_per_seed.csv``: every open-loop schedule
-  on the first of them (``atp_baselines.py --open-loop --first-seed 2000000000``);
+- ``atp_timing_open_loop_per_seed.csv`` in ``atp_timing_labelled_draws/`` and its folders:
+  every open-loop schedule on the draws of each search (``atp_baselines.py --open-loop
+  --first-seed 2000000000``, and ``2000000048`` in ``draws_48_95/``);
 - ``atp_shock_timing_labels/``: whether a single shock at each decision ends each draw,
   and the supervised reference's leave-one-draw-out choice (``atp_shock_timing.txt``).
 
-Prints a Markdown table: mean return, success and shocks, and for each other policy the draws
-that only run 4 ends and those that only the other policy ends.
+Prints a Markdown table, for the draws of each search and for all the labelled draws: mean
+return, success and shocks, and for each other policy the draws that only run 4 ends and those
+that only the other policy ends. The hindsight oracles pick the best row per draw after seeing
+them all (not policies): no policy known here ends more draws.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from atp_shock_timing import choose, leave_one_draw_out, load_labels, outcomes  
 from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
 FOLDER = "atp_timing_labelled_draws"
+SEARCH = "atp_timing_open_loop_per_seed.csv"  # each search of the schedules, in FOLDER or below
 AGENTS = {  # stored policies' evaluations on the labelled draws; the first is paired with all
     "run 4, iteration 100": "atp_timing_agent_eval.csv",
     "run 2, iteration 90": "atp_timing_run2_agent_eval.csv",
@@ -48,7 +52,7 @@ def labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray]:
     return seeds, single, outcomes(leave_one_draw_out(x, single, k), single, never, theta)
 
 
-def row(name: str, draws: int, means: dict, success=None, agent=None) -> str:
+def row(name: str, draws: str, means: dict, success=None, agent=None) -> str:
     """A table row; with ``success`` and ``agent`` (per draw), the draws ended by one only."""
     cells = [f"{means[k]:.2f}" if k in means else "" for k in ("return", "success", "shocks")]
     cells[1] = f"{100 * means['success']:.1f}%"
@@ -65,33 +69,44 @@ def main() -> None:
         name: {int(r["seed"]): r for r in read_per_policy(out / FOLDER / csv)["greedy DQN"]}
         for name, csv in AGENTS.items()
     }
-    schedules = read_per_policy(out / FOLDER / "atp_timing_open_loop_per_seed.csv")
-    searched = [int(r["seed"]) for r in next(iter(schedules.values()))]
+    schedules: dict[int, dict[str, dict]] = {}  # seed -> schedule -> its row
+    blocks = []  # the draws of each search, then all the labelled draws
+    for csv in sorted((out / FOLDER).glob(f"**/{SEARCH}")):
+        rows = read_per_policy(csv)
+        for policy, per_seed in rows.items():
+            for r in per_seed:
+                schedules.setdefault(int(r["seed"]), {})[policy] = r
+        blocks.append([int(r["seed"]) for r in next(iter(rows.values()))])
     print(
         "| policy | draws | return | success | shocks | draws only run 4 ends / only this policy |"
     )
     print("| --- | --- | --- | --- | --- | --- |")
-    for draws in (searched, seeds):
+    for draws in blocks + ([seeds] if seeds not in blocks else []):
+        name_draws = f"{draws[0] % 1000:02d}-{draws[-1] % 1000:02d}"
         index = [seeds.index(s) for s in draws]
         runs = {name: [by_seed[name][s] for s in draws] for name in AGENTS}
         agent = np.array([r["success"] for r in next(iter(runs.values()))], float)
         for i, (name, rows) in enumerate(runs.items()):
             won = np.array([r["success"] for r in rows], float)
             paired = (won, agent) if i else (None, None)  # the first is run 4 itself
-            print(row(name, len(draws), mean_metrics(rows), *paired))
-        if draws == searched:
-            means = {p: mean_metrics(r) for p, r in schedules.items()}
+            print(row(name, name_draws, mean_metrics(rows), *paired))
+        if all(s in schedules for s in draws):
+            per_policy = {p: [schedules[s][p] for s in draws] for p in schedules[draws[0]]}
+            means = {p: mean_metrics(r) for p, r in per_policy.items()}
             best = max(means, key=lambda p: (means[p]["return"], means[p]["success"]))
-            won = np.array([r["success"] for r in schedules[best]], float)
-            print(row(f"best open-loop schedule: {best}", len(draws), means[best], won, agent))
-            print(row("hindsight oracle of the schedules", len(draws), hindsight(schedules)))
+            won = np.array([r["success"] for r in per_policy[best]], float)
+            name = f"best open-loop schedule: {best}"
+            print(row(name, name_draws, means[best], won, agent))
+            print(row("hindsight oracle of the schedules", name_draws, hindsight(per_policy)))
+            name = "hindsight oracle of the schedules and the runs"
+            print(row(name, name_draws, hindsight(per_policy | runs)))
         best_single = int(single[index].mean(0).argmax())
         won = single[index, best_single]
         name = f"single shock at {best_single} (labels)"
-        print(row(name, len(draws), {"success": won.mean()}, won, agent))
+        print(row(name, name_draws, {"success": won.mean()}, won, agent))
         won = reference[index]
         name = "supervised reference, leave-one-draw-out (labels)"
-        print(row(name, len(draws), {"success": won.mean()}, won, agent))
+        print(row(name, name_draws, {"success": won.mean()}, won, agent))
 
 
 if __name__ == "__main__":
