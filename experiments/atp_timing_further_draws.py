@@ -82,31 +82,31 @@ def main() -> None:
     )
     print("| --- | --- | --- | --- | --- | --- |")
     for draws in blocks + ([seeds] if seeds not in blocks else []):
-        name_draws = f"{draws[0] % 1000:02d}-{draws[-1] % 1000:02d}"
+        span = f"{draws[0] % 1000:02d}-{draws[-1] % 1000:02d}"  # the draws by their last digits
         index = [seeds.index(s) for s in draws]
         runs = {name: [by_seed[name][s] for s in draws] for name in AGENTS}
         agent = np.array([r["success"] for r in next(iter(runs.values()))], float)
         for i, (name, rows) in enumerate(runs.items()):
             won = np.array([r["success"] for r in rows], float)
             paired = (won, agent) if i else (None, None)  # the first is run 4 itself
-            print(row(name, name_draws, mean_metrics(rows), *paired))
+            print(row(name, span, mean_metrics(rows), *paired))
         if all(s in schedules for s in draws):
             per_policy = {p: [schedules[s][p] for s in draws] for p in schedules[draws[0]]}
             means = {p: mean_metrics(r) for p, r in per_policy.items()}
             best = max(means, key=lambda p: (means[p]["return"], means[p]["success"]))
             won = np.array([r["success"] for r in per_policy[best]], float)
             name = f"best open-loop schedule: {best}"
-            print(row(name, name_draws, means[best], won, agent))
-            print(row("hindsight oracle of the schedules", name_draws, hindsight(per_policy)))
+            print(row(name, span, means[best], won, agent))
+            print(row("hindsight oracle of the schedules", span, hindsight(per_policy)))
             name = "hindsight oracle of the schedules and the runs"
-            print(row(name, name_draws, hindsight(per_policy | runs)))
+            print(row(name, span, hindsight(per_policy | runs)))
         best_single = int(single[index].mean(0).argmax())
         won = single[index, best_single]
         name = f"single shock at {best_single} (labels)"
-        print(row(name, name_draws, {"success": won.mean()}, won, agent))
+        print(row(name, span, {"success": won.mean()}, won, agent))
         won = reference[index]
         name = "supervised reference, leave-one-draw-out (labels)"
-        print(row(name, name_draws, {"success": won.mean()}, won, agent))
+        print(row(name, span, {"success": won.mean()}, won, agent))
 
 
 if __name__ == "__main__":
