@@ -18,7 +18,7 @@ the policies used. It reads, under ``--out``:
 Prints a Markdown table, for the draws of each search and for all the labelled draws: mean
 return, success and shocks, and for each other policy the draws that only run 4 ends and those
 that only the other policy ends. The hindsight oracles pick the best row per draw after seeing
-them all (not policies): no policy known here ends more draws.
+them all (not policies): no policy in the table ends more draws.
 """
 
 from __future__ import annotations
