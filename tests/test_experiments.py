@@ -211,7 +211,8 @@ def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
     rows and labels (the numbers of experiments/results/README.md): on draws 00-47 70.8%
     against the best schedule's 35.4%, which ends no draw the agent fails and 17 fewer; on
     draws 48-95, searched after, 54.2% against 33.3% (11 / 1); on all 96, 62.5% against 31.2%
-    (32 / 2), and no policy known here ends more than 72.9% of them, even chosen per draw."""
+    (32 / 2), and none of the table's policies, chosen per draw with hindsight, ends more than
+    72.9% of them."""
     run_script("atp_timing_further_draws.py", "--out", str(ROOT / "experiments" / "results"))
     lines = capsys.readouterr().out.splitlines()
     assert "| run 4, iteration 100 | 00-47 | 303.62 | 70.8% | 2.35 |  |" in lines
