@@ -33,6 +33,7 @@ def main() -> None:
         if not coordinator.is_leader():
             return
         from stable_baselines3 import DQN
+        from stable_baselines3.common.logger import Logger
 
         gym_env = GymnasiumView(env)
         model = DQN(
@@ -44,6 +45,7 @@ def main() -> None:
             seed=args.seed,
             verbose=0,
         )
+        model.set_logger(Logger(folder=None, output_formats=[]))  # else an empty dir in /tmp
         model.learn(total_timesteps=args.steps)
 
         optimum = exact_optimum(env)
