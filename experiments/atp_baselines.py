@@ -3,6 +3,7 @@
     python experiments/atp_baselines.py [--experiment atp] [--seeds 20] [--open-loop]
                                         [--select-seeds 5] [--single-shock K]
                                         [--policies NAME,...] [--schedules NAME,...]
+                                        [--two-shocks GAP,...] [--seed-list SEED,...]
                                         [--resume] [key=value ...]
     mpiexec -n 2 python experiments/atp_baselines.py ...   # 2 environments share the seeds
 
@@ -17,21 +18,24 @@ the best single shock: the decision of the one shock (or none) is chosen by mean
 first ``--select-seeds`` seeds (every decision tried), then evaluated on all seeds;
 ``--single-shock K`` fixes the decision instead (:func:`~physicsrl.envs.baselines.atp_baselines`).
 ``--policies`` keeps only the named ones (never,always,random,every4,single), ``--schedules``
-the named open-loop schedules (comma-separated display names).
+the named schedules of ``--open-loop`` (comma-separated display names).
 
 ``--open-loop`` evaluates instead every open-loop schedule on all seeds
 (:func:`~physicsrl.envs.baselines.open_loop_schedules`: never, always, one shock at each
 decision, every k-th decision from each offset for k = 2..6) and names the best: the bar of
 closed-loop control, and the per-seed hindsight oracle of the schedules (:func:`hindsight`).
+``--open-loop --two-shocks 1,2,3`` searches instead every schedule of two shocks at decisions
+i < j with j - i in 1, 2, 3 (:func:`~physicsrl.envs.baselines.two_shock_schedules`).
 Seeds are the held-out evaluation seeds 1000000000, 1000000001, ..., or with ``--first-seed
-S`` the seeds S, S + 1, ... (e.g. the draws labelled by ``atp_shock_timing.py``).
+S`` the seeds S, S + 1, ... (e.g. the draws labelled by ``atp_shock_timing.py``), or with
+``--seed-list`` the seeds listed.
 
 Writes, on the leader, ``<name>.csv`` (one row per policy: mean return, success rate, mean
 shocks and decisions), ``<name>_per_seed.csv`` (after each policy) and ``<name>.txt`` (the
-command, commit and settings), where name is ``<experiment>_baselines`` or
-``<experiment>_open_loop``. ``--resume`` keeps the policies already in ``<name>_per_seed.csv``
-when the settings are the same (the held-out seeds' draws included), and adds its command and
-commit to ``<name>.txt``.
+command, commit and settings), where name is ``<experiment>_baselines``,
+``<experiment>_open_loop`` or ``<experiment>_two_shocks``. ``--resume`` keeps the policies
+already in ``<name>_per_seed.csv`` when the settings are the same (the held-out seeds' draws
+included), and adds its command and commit to ``<name>.txt``.
 """
 
 from __future__ import annotations
@@ -50,7 +54,12 @@ from physicsrl.cli.command import compose
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.atp import ATPConfig, ResetSampler
-from physicsrl.envs.baselines import atp_baselines, decisions, open_loop_schedules
+from physicsrl.envs.baselines import (
+    atp_baselines,
+    decisions,
+    open_loop_schedules,
+    two_shock_schedules,
+)
 from physicsrl.envs.groups import environments
 from physicsrl.envs.task import TASKS
 from physicsrl.evaluation import compare
@@ -67,7 +76,9 @@ def main() -> None:
     parser.add_argument(
         "--first-seed", type=int, help="seeds FIRST, FIRST+1, ... instead of the held-out seeds"
     )
+    parser.add_argument("--seed-list", help="these seeds instead, e.g. 2000000008,2000000021")
     parser.add_argument("--open-loop", action="store_true", help="search every open-loop schedule")
+    parser.add_argument("--two-shocks", help="--open-loop: two shocks instead, these gaps apart")
     parser.add_argument("--select-seeds", type=int, default=5)
     parser.add_argument("--single-shock", type=int, help="the single shock's decision (no search)")
     parser.add_argument("--policies", default=",".join(POLICIES))
@@ -80,23 +91,33 @@ def main() -> None:
     unknown = [k for k in keep if k not in POLICIES]
     if unknown:
         parser.error(f"--policies: unknown {unknown}; use {','.join(POLICIES)}")
-    name = f"{args.experiment}_{'open_loop' if args.open_loop else 'baselines'}"
-    settings = {"experiment": args.experiment, "seeds": args.seeds, "overrides": args.overrides}
-    if args.first_seed is not None:
-        settings["first_seed"] = args.first_seed
+    gaps = integers(parser, "--two-shocks", args.two_shocks)
+    if gaps and (not args.open_loop or min(gaps) < 1):
+        parser.error(f"--two-shocks {args.two_shocks}: needs --open-loop and gaps >= 1")
+    listed = integers(parser, "--seed-list", args.seed_list)
+    if listed and args.first_seed is not None:
+        parser.error("--seed-list and --first-seed: give one of them")
+    family = "two_shocks" if gaps else "open_loop" if args.open_loop else "baselines"
+    name = f"{args.experiment}_{family}"
+    seeds_given = len(listed) if listed else args.seeds
+    settings = {"experiment": args.experiment, "seeds": seeds_given, "overrides": args.overrides}
+    for key, value in (("first_seed", args.first_seed), ("seed_list", listed), ("gaps", gaps)):
+        if value:
+            settings[key] = value
     cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
     make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
         if env is None:  # a rank that served an environment
             return
         first = args.first_seed
-        seeds = (
+        seeds = listed or (
             held_out_seeds(args.seeds) if first is None else list(range(first, first + args.seeds))
         )
         settings["draws"] = draws(cfg, seeds)
         done = previous_rows(args.out / name, settings) if args.resume else {}
         if args.open_loop:
-            policies = open_loop_schedules(decisions(env))
+            n = decisions(env)
+            policies = two_shock_schedules(n, gaps) if gaps else open_loop_schedules(n)
             if args.schedules:
                 names = args.schedules.split(",")
                 if set(names) - set(policies):
@@ -131,6 +152,15 @@ def main() -> None:
             best = max(means, key=lambda row: row["return"])
             print(f"bar (best open-loop schedule by mean return): {best}", flush=True)
             print(f"per-seed hindsight oracle of these schedules: {hindsight(done)}", flush=True)
+
+
+def integers(parser: argparse.ArgumentParser, option: str, text: str | None) -> list[int]:
+    """The comma-separated integers of ``option`` ([] when not given); a bad one ends the run
+    with one line naming it."""
+    try:
+        return [int(item) for item in text.split(",")] if text else []
+    except ValueError:
+        parser.error(f"{option} {text}: expected comma-separated integers")
 
 
 def previous_rows(stem: Path, settings: dict) -> dict[str, list[dict]]:

@@ -190,6 +190,27 @@ def test_open_loop_search_tables_every_schedule_and_resumes(tmp_path):
     assert refused.value.code == 2
 
 
+def test_two_shock_search_tables_every_pair_on_the_listed_seeds(tmp_path):
+    """--open-loop --two-shocks 1,2 on a small ATP preset of 4 decisions: the 5 pairs of shocks
+    1 or 2 decisions apart, each on the seeds of --seed-list in their order, with its two shocks
+    taken up to the episode's end; bad gaps are refused before any simulation."""
+    small = ["env.mesh.cells=20", "env.max_decisions=4", "env.extra_waits=1"]
+    small += ["env.decision_interval=10", "env.shock.duration=5"]
+    arguments = ["--open-loop", "--two-shocks", "1,2", "--seed-list", "9,7", "--out", str(tmp_path)]
+    run_script("atp_baselines.py", *arguments, *small)
+    rows = list(csv.DictReader((tmp_path / "atp_two_shocks_per_seed.csv").open()))
+    pairs = ["0 and 1", "0 and 2", "1 and 2", "1 and 3", "2 and 3"]
+    assert [row["policy"] for row in rows] == [f"shocks at {p}" for p in pairs for _ in (9, 7)]
+    assert [int(row["seed"]) for row in rows] == [9, 7] * 5
+    for row in rows:
+        scheduled = [int(word) for word in row["policy"].split()[2::2]]
+        assert int(row["shocks"]) == sum(d < int(row["length"]) for d in scheduled), row
+    assert '"seed_list": [9, 7], "gaps": [1, 2]' in (tmp_path / "atp_two_shocks.txt").read_text()
+    with pytest.raises(SystemExit) as refused:
+        run_script("atp_baselines.py", "--open-loop", "--two-shocks", "0", *small)
+    assert refused.value.code == 2
+
+
 def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():
     """The per-seed hindsight oracle of the timing variant's 46 schedules, from their stored
     rows: 80% success and mean return 364.15, draws 06, 11, 14 and 17 ended by none (the

@@ -8,7 +8,8 @@ Heat: :class:`Constant` (0 = stop at once, 1 = never stop), :class:`HeatOptimal`
 optimum of :func:`~physicsrl.envs.heat.exact_optimum`). ATP: :class:`Constant` (0 = never
 shock, 1 = always shock), :class:`RandomActions`, :class:`EveryKth`, :class:`Schedule` (shock
 at given decisions) and :func:`best_single_shock` (the best one-shock schedule over evaluation
-seeds); :func:`atp_baselines` names the ATP set.
+seeds); :func:`atp_baselines` names the ATP set, :func:`open_loop_schedules` the bar's
+schedules and :func:`two_shock_schedules` the pairs of shocks.
 """
 
 from __future__ import annotations
@@ -122,6 +123,17 @@ def open_loop_schedules(
     for k in periods:
         schedules |= {f"every {k} from {offset}": EveryKth(k, offset) for offset in range(k)}
     return schedules
+
+
+def two_shock_schedules(max_decisions: int, gaps: Iterable[int]) -> dict[str, Policy]:
+    """Display name -> policy: two shocks, at decisions i < j < ``max_decisions`` with
+    j - i in ``gaps``."""
+    return {
+        f"shocks at {i} and {i + gap}": Schedule([i, i + gap])
+        for i in range(max_decisions)
+        for gap in sorted(set(gaps))
+        if 0 < gap and i + gap < max_decisions
+    }
 
 
 def atp_baselines(
