@@ -12,13 +12,17 @@ the policies used. It reads, under ``--out``:
 - ``atp_timing_open_loop_per_seed.csv`` in ``atp_timing_labelled_draws/`` and its folders:
   every open-loop schedule on the draws of each search (``atp_baselines.py --open-loop
   --first-seed 2000000000``, and ``2000000048`` in ``draws_48_95/``);
+- ``atp_timing_two_shocks_per_seed.csv`` there or below: schedules of two shocks on the draws
+  that none of the above ends (``atp_baselines.py --open-loop --two-shocks 1,2,3``);
 - ``atp_shock_timing_labels/``: whether a single shock at each decision ends each draw,
   and the supervised reference's leave-one-draw-out choice (``atp_shock_timing.txt``).
 
 Prints a Markdown table, for the draws of each search and for all the labelled draws: mean
 return, success and shocks, and for each other policy the draws that only run 4 ends and those
 that only the other policy ends. The hindsight oracles pick the best row per draw after seeing
-them all (not policies): no policy in the table ends more draws.
+them all (not policies): no policy in the table ends more draws. The last one adds the
+two-shock schedules, tried only on the draws that nothing else ends: its success is that of
+the best choice of everything tried, its return is not printed (it would be a lower bound).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
 FOLDER = "atp_timing_labelled_draws"
 SEARCH = "atp_timing_open_loop_per_seed.csv"  # each search of the schedules, in FOLDER or below
+PAIRS = "atp_timing_two_shocks_per_seed.csv"  # two-shock schedules, in FOLDER or below
 AGENTS = {  # stored policies' evaluations on the labelled draws; the first is paired with all
     "run 4, iteration 100": "atp_timing_agent_eval.csv",
     "run 2, iteration 90": "atp_timing_run2_agent_eval.csv",
@@ -77,6 +82,9 @@ def main() -> None:
             for r in per_seed:
                 schedules.setdefault(int(r["seed"]), {})[policy] = r
         blocks.append([int(r["seed"]) for r in next(iter(rows.values()))])
+    pairs = {}  # two-shock schedule -> its rows
+    for csv in (out / FOLDER).glob(f"**/{PAIRS}"):
+        pairs |= read_per_policy(csv)
     print(
         "| policy | draws | return | success | shocks | draws only run 4 ends / only this policy |"
     )
@@ -100,6 +108,11 @@ def main() -> None:
             print(row("hindsight oracle of the schedules", span, hindsight(per_policy)))
             name = "hindsight oracle of the schedules and the runs"
             print(row(name, span, hindsight(per_policy | runs)))
+            if pairs and draws == seeds:
+                tried = {r["seed"] for rows in pairs.values() for r in rows}
+                name = f"... and {len(pairs)} two-shock schedules, tried on {len(tried)} draws"
+                oracle = hindsight(per_policy | runs | pairs)
+                print(row(name, span, {"success": oracle["success"]}))
         best_single = int(single[index].mean(0).argmax())
         won = single[index, best_single]
         name = f"single shock at {best_single} (labels)"
