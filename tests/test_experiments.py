@@ -213,18 +213,33 @@ def test_two_shock_search_tables_every_pair_on_the_listed_seeds(tmp_path):
 
 def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():
     """The per-seed hindsight oracle of the timing variant's 46 schedules, from their stored
-    rows: 80% success and mean return 364.15, draws 06, 11, 14 and 17 ended by none (the
-    numbers of experiments/results/README.md)."""
+    rows: 80% success and mean return 364.15, draws 06, 11, 14 and 17 ended by none; the best
+    of the 66 two-shock schedules, at 0 and 1, 144.30 and 35%; with them the oracle ends draw 14
+    too, 85% and 392.05 (the numbers of experiments/results/README.md)."""
     sys.path.insert(0, str(ROOT / "experiments"))
     from atp_baselines import hindsight
 
-    from physicsrl.tables import read_per_policy
+    from physicsrl.tables import mean_metrics, read_per_policy
 
-    rows = read_per_policy(ROOT / "experiments" / "results" / "atp_timing_open_loop_per_seed.csv")
+    results = ROOT / "experiments" / "results"
+    rows = read_per_policy(results / "atp_timing_open_loop_per_seed.csv")
     assert len(rows) == 46
     oracle = hindsight(rows)
     assert oracle["success"] == 0.8 and oracle["return"] == 364.15
     assert oracle["unended"] == [1_000_000_000 + draw for draw in (6, 11, 14, 17)]
+
+    pairs = read_per_policy(results / "atp_timing_two_shocks_per_seed.csv")
+    assert len(pairs) == 66 and all(len(r) == 20 for r in pairs.values())
+    means = {p: mean_metrics(r) for p, r in pairs.items()}
+    best = max(means, key=lambda p: means[p]["return"])
+    assert (best, means[best]["return"], means[best]["success"]) == (
+        "shocks at 0 and 1",
+        144.3,
+        0.35,
+    )
+    oracle = hindsight(rows | pairs)
+    assert oracle["success"] == 0.85 and oracle["return"] == 392.05
+    assert oracle["unended"] == [1_000_000_000 + draw for draw in (6, 11, 17)]
 
 
 def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
