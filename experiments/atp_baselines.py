@@ -101,9 +101,12 @@ def main() -> None:
     name = f"{args.experiment}_{family}"
     seeds_given = len(listed) if listed else args.seeds
     settings = {"experiment": args.experiment, "seeds": seeds_given, "overrides": args.overrides}
-    for key, value in (("first_seed", args.first_seed), ("seed_list", listed), ("gaps", gaps)):
-        if value:
-            settings[key] = value
+    if args.first_seed is not None:  # 0 is a first seed too
+        settings["first_seed"] = args.first_seed
+    if listed:
+        settings["seed_list"] = listed
+    if gaps:
+        settings["gaps"] = gaps
     cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
     make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
