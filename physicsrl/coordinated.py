@@ -59,6 +59,8 @@ from typing import Any
 import numpy as np
 from mpi4py import MPI
 
+from physicsrl.guard import ended
+
 __all__ = [
     "Coordinator",
     "wait_for",
@@ -134,7 +136,14 @@ def _fail(comm: MPI.Comm, where: str | None) -> None:
     if where is not None:
         sys.stderr.write(f"[rank {comm.rank}] {where}:\n{traceback.format_exc()}")
         sys.stderr.flush()
-    time.sleep(0.2)  # let the launcher forward the traceback before Abort tears the job down
+    _abort(comm)
+
+
+def _abort(comm: MPI.Comm) -> None:
+    """End every rank of ``comm`` with status 1, after what this rank printed about why; its
+    guard (:mod:`physicsrl.guard`) is told that the end is meant."""
+    ended()
+    time.sleep(0.2)  # let the launcher forward the report before Abort tears the job down
     comm.Abort(1)
     os._exit(1)  # MPICH's Abort can return once it has told the process manager
 
@@ -618,9 +627,7 @@ class _Watchdog:
                 f"{self.timeout:g} s on ranks {late}; aborting every rank\n"
             )
             sys.stderr.flush()
-            time.sleep(0.2)  # let the launcher forward the line before Abort tears the job down
-            self.channel.Abort(1)
-            os._exit(1)
+            _abort(self.channel)
 
 
 class _Unregistered:

@@ -15,6 +15,10 @@ from physicsrl.coordinated import (
     wait_for,
 )
 
+# Each fault and exit below also runs with every rank guarded (physicsrl.guard, as the
+# physicsrl-* commands run): the same statuses and lines, and no line of the guard's.
+guards = pytest.mark.parametrize("guard", [[], ["-m", "physicsrl.guard"]], ids=["", "guarded"])
+
 
 class Recorder(Coordinated):
     def __init__(self, coordinator=None, namespace=None):
@@ -94,17 +98,19 @@ def test_calls_are_replayed_on_every_rank(mpi, ranks):
     assert "ok" in result.stderr
 
 
+@guards
 @pytest.mark.parametrize("ranks", [2, 3])
 @pytest.mark.parametrize("where", ["leader", "follower", "all", "leader-code"])
-def test_a_fault_anywhere_ends_every_rank(mpi, ranks, where):
+def test_a_fault_anywhere_ends_every_rank(mpi, guard, ranks, where):
     start = time.perf_counter()
-    result = mpi(ranks, "tests/mpi_scripts/coord_fault.py", where, timeout=30, check=False)
+    result = mpi(ranks, *guard, "tests/mpi_scripts/coord_fault.py", where, timeout=30, check=False)
     elapsed = time.perf_counter() - start
     output = result.stdout + result.stderr
     assert result.returncode != 0, output
     assert elapsed < 10, f"took {elapsed:.1f} s to end"
     assert "unreachable" not in output
     assert len(re.findall(rf"RuntimeError: injected fault {where}", output)) == 1, output
+    assert "ended before its job did" not in output
 
 
 def test_coordinators_on_split_communicators_work_side_by_side(mpi):
@@ -126,28 +132,33 @@ def test_idle_follower_does_not_spin_a_core(mpi):
     assert share < 0.10, f"an idle follower used {share:.1%} of a core"
 
 
+@guards
 @pytest.mark.parametrize("ranks", [2, 3])
 @pytest.mark.parametrize("status", [0, 3])
-def test_leader_sys_exit_is_every_rank_exit_status(mpi, ranks, status):
+def test_leader_sys_exit_is_every_rank_exit_status(mpi, guard, ranks, status):
     result = mpi(
-        ranks, "tests/mpi_scripts/coord_exit.py", f"exit-{status}", timeout=30, check=False
+        ranks, *guard, "tests/mpi_scripts/coord_exit.py", f"exit-{status}", timeout=30, check=False
     )
     assert result.returncode == status, result.stderr
     assert "Traceback" not in result.stderr and "finished" not in result.stderr, result.stderr
 
 
+@guards
 @pytest.mark.parametrize("ranks", [2, 3])
-def test_keyboard_interrupt_in_leader_code_ends_every_rank_with_130(mpi, ranks):
-    result = mpi(ranks, "tests/mpi_scripts/coord_exit.py", "interrupt", timeout=30, check=False)
+def test_keyboard_interrupt_in_leader_code_ends_every_rank_with_130(mpi, guard, ranks):
+    script = "tests/mpi_scripts/coord_exit.py"
+    result = mpi(ranks, *guard, script, "interrupt", timeout=30, check=False)
     assert result.returncode == 130, result.stderr
     assert result.stderr.strip() == "interrupted: every rank exits with status 130"
 
 
+@guards
 @pytest.mark.parametrize("ranks", [2, 3])
-def test_watchdog_aborts_a_call_that_some_ranks_never_finish(mpi, ranks):
+def test_watchdog_aborts_a_call_that_some_ranks_never_finish(mpi, guard, ranks):
     start = time.perf_counter()
     result = mpi(
         ranks,
+        *guard,
         "tests/mpi_scripts/coord_exit.py",
         "followers-collective",
         timeout=30,
@@ -162,6 +173,7 @@ def test_watchdog_aborts_a_call_that_some_ranks_never_finish(mpi, ranks):
         f"{followers}; aborting every rank"
     )
     assert result.stderr.count("watchdog:") == 1 and line in result.stderr, result.stderr
+    assert "ended before its job did" not in result.stderr  # the abort was reported
 
 
 def test_watchdog_lets_calls_that_finish_run_to_the_end(mpi):

@@ -191,13 +191,29 @@ def test_configs_are_found_from_a_built_wheel(tmp_path):
 @pytest.mark.parametrize("status", [0, 3])
 @pytest.mark.parametrize("ranks", [2, 3])
 def test_a_vanished_follower_ends_the_job_at_once_with_its_status(mpi, ranks, status):
-    """A follower that calls ``os._exit(K)`` in a parallel call: MPICH's mpiexec kills every
-    other rank (SIGKILL, no handler runs) and returns the status of the first process it sees
-    end, K or 9 (a killed one), so the job ends at once but no rank can name the vanished one
-    (README, Command line and MPI); ``os._exit(0)`` can end the job with status 0."""
+    """Unguarded, a follower that calls ``os._exit(K)`` in a parallel call: MPICH's mpiexec
+    kills every other rank (SIGKILL, no handler runs) and returns the status of the first
+    process it sees end, K or 9 (a killed one), so the job ends at once but no rank can name
+    the vanished one; ``os._exit(0)`` can end the job with status 0."""
     script = "tests/mpi_scripts/coord_exit.py"
     result = mpi(ranks, script, f"vanish-{status}", timeout=30, check=False)
     assert result.returncode in (status, 9), result.stderr
+    assert "finished" not in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("status", [0, 3])
+@pytest.mark.parametrize("ranks", [2, 3])
+def test_a_guarded_rank_that_vanishes_is_named_and_fails_the_job(mpi, ranks, status):
+    """The same under ``python -m physicsrl.guard``: the vanished rank's guard names it in one
+    line and exits non-zero, so the job ends at once with a failure, ``os._exit(0)`` too."""
+    guarded = ["-m", "physicsrl.guard", "tests/mpi_scripts/coord_exit.py", f"vanish-{status}"]
+    result = mpi(ranks, *guarded, timeout=30, check=False)
+    assert result.returncode != 0, result.stderr
+    [line] = [line for line in result.stderr.splitlines() if "ended before" in line]
+    assert line == (
+        f"error: rank {ranks - 1} ended before its job did (os._exit({status})); "
+        "the launcher ends every rank"
+    )
     assert "finished" not in result.stderr and "Traceback" not in result.stderr
 
 

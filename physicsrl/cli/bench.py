@@ -17,6 +17,7 @@ import shlex
 import sys
 
 from physicsrl.bench import SETTINGS
+from physicsrl.guard import guard
 from physicsrl.launch import output_dir, relaunch, run_hydra
 from physicsrl.tables import format_table, write_csv
 
@@ -87,6 +88,7 @@ def main() -> None:
         choices = ", ".join(BENCHMARKS)
         raise SystemExit(f"error: unknown benchmark {name!r}; choose one of {choices}")
     relaunch(overrides)
+    guard()
     from physicsrl.cli.command import validate_or_exit
 
     validate_or_exit(f"bench_{name}", overrides, lambda cfg: check(cfg, name))

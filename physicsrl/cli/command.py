@@ -17,6 +17,7 @@ from typing import NoReturn
 
 from omegaconf import OmegaConf
 
+from physicsrl.guard import guard
 from physicsrl.launch import refuse, relaunch, run_hydra
 
 MULTIRUN = {"-m", "--multirun"}
@@ -129,11 +130,12 @@ def sweep_jobs(overrides: list[str]) -> list[list[str]]:
 
 
 def main(config_name: str, task: str, check: Callable) -> None:
-    """Launch (``mpi.ranks``), validate (every job of a ``-m`` sweep; not with Hydra's
-    print-only flags), then ``task(cfg)`` on every rank under Hydra (``task``:
-    "module:function")."""
+    """Launch (``mpi.ranks``), guard each rank (:mod:`physicsrl.guard`), validate (every job
+    of a ``-m`` sweep; not with Hydra's print-only flags), then ``task(cfg)`` on every rank
+    under Hydra (``task``: "module:function")."""
     overrides = sys.argv[1:]
     relaunch(overrides)
+    guard()
     from physicsrl.config import register
 
     register()

@@ -11,6 +11,8 @@ in the same order and stepped by the leader inside ``with coordinator``.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import torch
 from mpi4py import MPI
@@ -24,7 +26,7 @@ from physicsrl.coordinated import Coordinated, parallel
 class ToyChainEnv(EnvBase, Coordinated):
     optimum = 1.0
 
-    def __init__(self, coordinator, length: int = 5, seed: int = 0):
+    def __init__(self, coordinator, length: int = 5, seed: int = 0, vanish_at: int = 0):
         super().__init__(device="cpu", batch_size=[])
         self.register_coordinator(coordinator)
         self.length = length
@@ -36,11 +38,16 @@ class ToyChainEnv(EnvBase, Coordinated):
         self.rng = np.random.default_rng(seed)
         self.t = 0
         self.c = 0
+        self.vanish_at = vanish_at  # > 0: the job's last rank calls os._exit(0) in that call
+        self.calls = 0
 
     @parallel
     def _simulate(self, t: int) -> int:
         """Stand-in for a distributed solve: every rank of the env's group takes part in a
         reduction (its coordinator's communicator, not COMM_WORLD: a job may hold many envs)."""
+        self.calls += 1
+        if self.calls == self.vanish_at and MPI.COMM_WORLD.rank == MPI.COMM_WORLD.size - 1:
+            os._exit(0)  # a rank that vanishes without a word
         return self.coordinator.comm.allreduce(t, op=MPI.MAX)
 
     def _obs(self):
@@ -86,4 +93,5 @@ class ToyChainEnv(EnvBase, Coordinated):
 
 def make_env(cfg, coordinator):
     """Factory for ``env.factory`` (the Hydra training runner)."""
-    return ToyChainEnv(coordinator, length=int(cfg.env.get("length", 5)), seed=int(cfg.seed))
+    length, vanish_at = int(cfg.env.get("length", 5)), int(cfg.env.get("vanish_at", 0))
+    return ToyChainEnv(coordinator, length, int(cfg.seed), vanish_at)

@@ -1,0 +1,128 @@
+"""A guard process per MPI rank, so that a rank that vanishes is named and ends the job non-zero.
+
+A rank that ends without a word (``os._exit(0)``, the kernel's OOM killer) runs no handler,
+and MPICH's ``mpiexec`` then kills every other rank at once and returns the status of the first
+process it sees end: 0 for ``os._exit(0)``. So the rank is watched from outside. :func:`guard`,
+called before MPI starts, forks the process the launcher started: the child returns and runs
+the job; the parent, the guard, keeps the launcher's connection open and waits for it. The job
+marks its end when the interpreter exits (the script's end, ``sys.exit(k)``) and when physicsrl
+aborts the job after reporting why (:func:`ended`). A job that ends unmarked gets one line,
+
+    error: rank 1 ended before its job did (os._exit(0)); the launcher ends every rank
+
+and the guard exits non-zero (the job's status, 1 for 0, 128 + N for signal N), so the launcher
+ends every rank with a failure. A marked end exits with the job's own status, silently.
+
+Every ``physicsrl-*`` command guards its ranks under a launcher (``mpi.ranks=N`` launches
+included); a script is guarded with ``mpiexec -n 4 python -m physicsrl.guard script.py [args]``
+(or ``-m module [args]``). The job stays in the rank's process group, where MPICH's
+``mpiexec`` sends its signals, so SIGINT and SIGTERM reach it once, directly; the guard ignores
+them and ends with the job (a launcher that signals only the process it started would not reach
+the job: ``PHYSICSRL_GUARD=0`` there). The job is killed if its guard dies (the launcher's
+SIGKILL). Linux only (``PR_SET_PDEATHSIG``); no guard elsewhere, nor with ``PHYSICSRL_GUARD=0``.
+"""
+
+from __future__ import annotations
+
+import atexit
+import ctypes
+import os
+import runpy
+import signal
+import sys
+import time
+from typing import NoReturn
+
+from physicsrl.launch import launched_rank, launched_size
+
+__all__ = ["guard", "ended"]
+
+PR_SET_PDEATHSIG = 1  # prctl option: a signal for this process when its parent dies
+TEARDOWN_S = 1.0  # how long a launcher may take to kill the guards after another rank's abort
+IGNORED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
+
+_marker: tuple[int, int] | None = None  # in the job: (the pipe to its guard, the job's pid)
+
+
+def guard() -> None:
+    """Split this rank into its guard and its job (module docstring); returns in the job only.
+
+    Does nothing without an MPI launcher, once MPI has started (forking it is unsafe), in a
+    job already guarded, with ``PHYSICSRL_GUARD=0`` and off Linux.
+    """
+    global _marker
+    if (
+        launched_size() is None
+        or "mpi4py.MPI" in sys.modules
+        or _marker is not None
+        or os.environ.get("PHYSICSRL_GUARD") == "0"
+        or not sys.platform.startswith("linux")
+    ):
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    read, write = os.pipe()
+    job = os.fork()
+    if job == 0:
+        os.close(read)
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        _marker = (write, os.getpid())  # not a forked child's exit
+        atexit.register(ended)  # registered first, so it runs last
+        return
+    os.close(write)
+    _watch(job, read)
+
+
+def ended() -> None:
+    """Tell this rank's guard that its job ends as meant: a normal exit, or an abort that
+    physicsrl has reported (:mod:`physicsrl.coordinated`). Nothing without a guard."""
+    global _marker
+    if _marker is not None and _marker[1] == os.getpid():
+        os.write(_marker[0], b"1")
+        os.close(_marker[0])
+        _marker = None
+
+
+def _watch(job: int, marker: int) -> NoReturn:
+    """The guard: wait for ``job``, exit with its status (module docstring), naming this rank
+    if it ended without marking it."""
+
+    for signum in IGNORED:  # the launcher signals the rank's process group: the job too
+        signal.signal(signum, signal.SIG_IGN)
+    _, status = os.waitpid(job, 0)
+    code = os.waitstatus_to_exitcode(status)  # -N: killed by signal N
+    if os.read(marker, 1) != b"1":
+        # a job ended by the launcher's teardown of an abort elsewhere (reported there) is
+        # followed by the guard's own SIGKILL: only a rank that ended first gets this far
+        time.sleep(TEARDOWN_S)
+        how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"os._exit({code})"
+        sys.stderr.write(
+            f"error: rank {launched_rank()} ended before its job did ({how}); "
+            "the launcher ends every rank\n"
+        )
+        sys.stderr.flush()
+        code = code or 1
+    os._exit(128 - code if code < 0 else code)  # not the job's atexit handlers a second time
+
+
+def run(arguments: list[str]) -> NoReturn:
+    """``python -m physicsrl.guard script.py [args]`` or ``... -m module [args]``: guard this
+    rank, then run the script or module as ``__main__`` with those arguments."""
+    if not arguments or arguments[0] in ("-h", "--help") or arguments == ["-m"]:
+        print("usage: mpiexec -n N python -m physicsrl.guard (script.py | -m module) [args]")
+        raise SystemExit(0 if arguments[:1] in (["-h"], ["--help"]) else 2)
+    guard()
+    if arguments[0] == "-m":
+        sys.argv = arguments[1:]
+        runpy.run_module(arguments[1], run_name="__main__", alter_sys=True)
+    else:
+        sys.argv = arguments
+        sys.path.insert(0, os.path.dirname(os.path.abspath(arguments[0])))
+        runpy.run_path(arguments[0], run_name="__main__")
+    raise SystemExit(0)
+
+
+if __name__ == "__main__":
+    import physicsrl.guard  # this file runs as __main__: the job's marker lives in the module
+
+    physicsrl.guard.run(sys.argv[1:])
