@@ -17,7 +17,9 @@ from physicsrl.coordinated import (
 
 # Each fault and exit below also runs with every rank guarded (physicsrl.guard, as the
 # physicsrl-* commands run): the same statuses and lines, and no line of the guard's.
-guards = pytest.mark.parametrize("guard", [[], ["-m", "physicsrl.guard"]], ids=["", "guarded"])
+guards = pytest.mark.parametrize(
+    "ranks, guard", [(2, []), (3, []), (3, ["-m", "physicsrl.guard"])], ids=["2", "3", "3-guarded"]
+)
 
 
 class Recorder(Coordinated):
@@ -99,7 +101,6 @@ def test_calls_are_replayed_on_every_rank(mpi, ranks):
 
 
 @guards
-@pytest.mark.parametrize("ranks", [2, 3])
 @pytest.mark.parametrize("where", ["leader", "follower", "all", "leader-code"])
 def test_a_fault_anywhere_ends_every_rank(mpi, guard, ranks, where):
     start = time.perf_counter()
@@ -133,7 +134,6 @@ def test_idle_follower_does_not_spin_a_core(mpi):
 
 
 @guards
-@pytest.mark.parametrize("ranks", [2, 3])
 @pytest.mark.parametrize("status", [0, 3])
 def test_leader_sys_exit_is_every_rank_exit_status(mpi, guard, ranks, status):
     result = mpi(
@@ -144,7 +144,6 @@ def test_leader_sys_exit_is_every_rank_exit_status(mpi, guard, ranks, status):
 
 
 @guards
-@pytest.mark.parametrize("ranks", [2, 3])
 def test_keyboard_interrupt_in_leader_code_ends_every_rank_with_130(mpi, guard, ranks):
     script = "tests/mpi_scripts/coord_exit.py"
     result = mpi(ranks, *guard, script, "interrupt", timeout=30, check=False)
@@ -153,7 +152,6 @@ def test_keyboard_interrupt_in_leader_code_ends_every_rank_with_130(mpi, guard, 
 
 
 @guards
-@pytest.mark.parametrize("ranks", [2, 3])
 def test_watchdog_aborts_a_call_that_some_ranks_never_finish(mpi, guard, ranks):
     start = time.perf_counter()
     result = mpi(

@@ -201,18 +201,19 @@ def test_a_vanished_follower_ends_the_job_at_once_with_its_status(mpi, ranks, st
     assert "finished" not in result.stderr and "Traceback" not in result.stderr
 
 
-@pytest.mark.parametrize("status", [0, 3])
+@pytest.mark.parametrize("status", ["0", "3", "SIGKILL"])
 @pytest.mark.parametrize("ranks", [2, 3])
 def test_a_guarded_rank_that_vanishes_is_named_and_fails_the_job(mpi, ranks, status):
-    """The same under ``python -m physicsrl.guard``: the vanished rank's guard names it in one
-    line and exits non-zero, so the job ends at once with a failure, ``os._exit(0)`` too."""
+    """The same under ``python -m physicsrl.guard``, and a rank killed by SIGKILL (the OOM
+    killer): the vanished rank's guard names it in one line and exits non-zero, so the job ends
+    at once with a failure, ``os._exit(0)`` too."""
     guarded = ["-m", "physicsrl.guard", "tests/mpi_scripts/coord_exit.py", f"vanish-{status}"]
     result = mpi(ranks, *guarded, timeout=30, check=False)
     assert result.returncode != 0, result.stderr
     [line] = [line for line in result.stderr.splitlines() if "ended before" in line]
+    how = "killed by SIGKILL" if status == "SIGKILL" else f"os._exit({status})"
     assert line == (
-        f"error: rank {ranks - 1} ended before its job did (os._exit({status})); "
-        "the launcher ends every rank"
+        f"error: rank {ranks - 1} ended before its job did ({how}); the launcher ends every rank"
     )
     assert "finished" not in result.stderr and "Traceback" not in result.stderr
 

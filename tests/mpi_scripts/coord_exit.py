@@ -2,12 +2,14 @@
 
 ``exit-K``: the leader calls ``sys.exit(K)`` inside the with block; ``interrupt``: leader-only
 code raises KeyboardInterrupt; ``vanish-K``: the last rank calls ``os._exit(K)`` inside a
-parallel call (a follower that disappears without a word); ``followers-collective``: a parallel
+parallel call (a follower that disappears without a word), ``vanish-SIGKILL``: it kills itself
+(as the OOM killer would); ``followers-collective``: a parallel
 call enters a barrier on the followers only (a hang that the watchdog ends); ``watched``:
 ordinary calls under the watchdog.
 """
 
 import os
+import signal
 import sys
 
 from mpi4py import MPI
@@ -25,7 +27,9 @@ class Job(Coordinated):
     @parallel
     def step(self, followers_only_barrier=False, vanish=None):
         if vanish is not None and comm.rank == comm.size - 1:
-            os._exit(vanish)
+            if vanish == "SIGKILL":
+                os.kill(os.getpid(), signal.SIGKILL)
+            os._exit(int(vanish))
         if not followers_only_barrier or comm.rank != 0:
             comm.Barrier()
         return comm.rank
@@ -43,7 +47,7 @@ with coordinator:
         if how == "followers-collective":
             job.step(followers_only_barrier=True)
         elif how.startswith("vanish-"):
-            job.step(vanish=int(how.removeprefix("vanish-")))
+            job.step(vanish=how.removeprefix("vanish-"))
             for _ in range(100):
                 job.step()
         else:
