@@ -8,7 +8,7 @@ the job; the parent, the guard, keeps the launcher's connection open and waits f
 marks its end when the interpreter exits (the script's end, ``sys.exit(k)``) and when physicsrl
 aborts the job after reporting why (:func:`ended`). A job that ends unmarked gets one line,
 
-    error: rank 1 ended before its job did (os._exit(0)); the launcher ends every rank
+    error: rank 1 ended before its job did (exited with status 0); the launcher ends every rank
 
 and the guard exits non-zero (the job's status, 1 for 0, 128 + N for signal N), so the launcher
 ends every rank with a failure. A marked end exits with the job's own status, silently.
@@ -33,7 +33,7 @@ import sys
 import time
 from typing import NoReturn
 
-from physicsrl.launch import launched_rank, launched_size
+from physicsrl.launch import launched_rank, launched_size, refuse
 
 __all__ = ["guard", "ended"]
 
@@ -86,7 +86,6 @@ def ended() -> None:
 def _watch(job: int, marker: int) -> NoReturn:
     """The guard: wait for ``job``, exit with its status (module docstring), naming this rank
     if it ended without marking it."""
-
     for signum in IGNORED:  # the launcher signals the rank's process group: the job too
         signal.signal(signum, signal.SIG_IGN)
     _, status = os.waitpid(job, 0)
@@ -95,7 +94,9 @@ def _watch(job: int, marker: int) -> NoReturn:
         # a job ended by the launcher's teardown of an abort elsewhere (reported there) is
         # followed by the guard's own SIGKILL: only a rank that ended first gets this far
         time.sleep(TEARDOWN_S)
-        how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"os._exit({code})"
+        how = (
+            f"killed by {signal.Signals(-code).name}" if code < 0 else f"exited with status {code}"
+        )
         sys.stderr.write(
             f"error: rank {launched_rank()} ended before its job did ({how}); "
             "the launcher ends every rank\n"
@@ -108,9 +109,15 @@ def _watch(job: int, marker: int) -> NoReturn:
 def run(arguments: list[str]) -> NoReturn:
     """``python -m physicsrl.guard script.py [args]`` or ``... -m module [args]``: guard this
     rank, then run the script or module as ``__main__`` with those arguments."""
-    if not arguments or arguments[0] in ("-h", "--help") or arguments == ["-m"]:
-        print("usage: mpiexec -n N python -m physicsrl.guard (script.py | -m module) [args]")
-        raise SystemExit(0 if arguments[:1] in (["-h"], ["--help"]) else 2)
+    usage = "usage: mpiexec -n N python -m physicsrl.guard (script.py | -m module) [args]"
+    if arguments[:1] in (["-h"], ["--help"]):
+        if launched_rank() == 0:
+            print(usage)
+        raise SystemExit(0)
+    if not arguments or arguments == ["-m"]:
+        refuse(usage)
+    if arguments[0] != "-m" and not os.path.isfile(arguments[0]):
+        refuse(f"no script {arguments[0]}")
     guard()
     if arguments[0] == "-m":
         sys.argv = arguments[1:]

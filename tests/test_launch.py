@@ -211,11 +211,19 @@ def test_a_guarded_rank_that_vanishes_is_named_and_fails_the_job(mpi, ranks, sta
     result = mpi(ranks, *guarded, timeout=30, check=False)
     assert result.returncode != 0, result.stderr
     [line] = [line for line in result.stderr.splitlines() if "ended before" in line]
-    how = "killed by SIGKILL" if status == "SIGKILL" else f"os._exit({status})"
+    how = "killed by SIGKILL" if status == "SIGKILL" else f"exited with status {status}"
     assert line == (
         f"error: rank {ranks - 1} ended before its job did ({how}); the launcher ends every rank"
     )
     assert "finished" not in result.stderr and "Traceback" not in result.stderr
+
+
+def test_the_guard_runs_a_module_and_refuses_a_missing_script_in_one_line(mpi):
+    guarded = ["-m", "physicsrl.guard", "-m", "tests.mpi_scripts.coord_exit", "exit-3"]
+    result = mpi(2, *guarded, timeout=30, check=False)
+    assert result.returncode == 3 and not result.stderr, result.stderr
+    result = mpi(2, "-m", "physicsrl.guard", "nosuch.py", timeout=30, check=False)
+    assert (result.returncode, result.stderr) == (2, "error: no script nosuch.py\n")
 
 
 @pytest.mark.parametrize("ranks", [2, 3])

@@ -371,10 +371,10 @@ def test_a_rank_that_vanishes_mid_training_is_named(tmp_path):
     """``physicsrl-train`` guards its ranks (:mod:`physicsrl.guard`): a follower that calls
     ``os._exit(0)`` in the env's 40th parallel call ends the job at once, non-zero, with one
     line naming it."""
-    result = run(command(tmp_path / "run", "+env.vanish_at=40"), tmp_path, timeout=60)
+    result = run(command(tmp_path / "run", "+env.vanish_at=40"), tmp_path)
     assert result.returncode != 0, result.stderr
     assert result.stderr.count("ended before its job did") == 1, result.stderr
-    assert "error: rank 1 ended before its job did (os._exit(0))" in result.stderr
+    assert "error: rank 1 ended before its job did (exited with status 0)" in result.stderr
 
 
 def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
