@@ -377,6 +377,19 @@ def test_a_rank_that_vanishes_mid_training_is_named(tmp_path):
     assert "error: rank 1 ended before its job did (exited with status 0)" in result.stderr
 
 
+def test_one_sigint_to_mpiexec_stops_guarded_training_cleanly(tmp_path):
+    """SIGINT to ``mpiexec`` reaches the jobs of the guarded ranks of ``physicsrl-train`` and
+    not their guards' deaths (:mod:`physicsrl.guard`): the run checkpoints, prints its summary
+    and exits with 130."""
+    run_dir = tmp_path / "run"
+    arguments = command(run_dir, "iterations=100000")
+    process = start_and_wait_for(arguments, tmp_path, run_dir / "checkpoints" / checkpoint_name(10))
+    process.send_signal(signal.SIGINT)
+    output, _ = process.communicate(timeout=60)
+    assert process.returncode == 130, output
+    assert "stopped early: received SIGINT" in output and "KeyboardInterrupt" not in output
+
+
 def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
     """SIGKILL after a checkpoint, resume; SIGTERM that run (it checkpoints and stops), resume
     again to the end: counters, evaluations, networks, optimizer and buffer equal the
