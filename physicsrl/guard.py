@@ -90,6 +90,9 @@ def _watch(job: int, marker: int) -> NoReturn:
         signal.signal(signum, signal.SIG_IGN)
     _, status = os.waitpid(job, 0)
     code = os.waitstatus_to_exitcode(status)  # -N: killed by signal N
+    # blocks while a process the job forked still holds the pipe: the launcher's connection
+    # is held open by that process too, and the job ends when it does (measured: with a
+    # non-blocking read the job hangs, as it does unguarded)
     if os.read(marker, 1) != b"1":
         # a job ended by the launcher's teardown of an abort elsewhere (reported there) is
         # followed by the guard's own SIGKILL: only a rank that ended first gets this far

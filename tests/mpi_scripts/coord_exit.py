@@ -3,9 +3,8 @@
 ``exit-K``: the leader calls ``sys.exit(K)`` inside the with block; ``interrupt``: leader-only
 code raises KeyboardInterrupt; ``vanish-K``: the last rank calls ``os._exit(K)`` inside a
 parallel call (a follower that disappears without a word), ``vanish-SIGKILL``: it kills itself
-(as the OOM killer would); ``followers-collective``: a parallel
-call enters a barrier on the followers only (a hang that the watchdog ends); ``watched``:
-ordinary calls under the watchdog.
+(as the OOM killer would); ``followers-collective``: a parallel call enters a barrier on the
+followers only (a hang that the watchdog ends); ``watched``: ordinary calls under the watchdog.
 """
 
 import os
