@@ -80,3 +80,56 @@ def test_a_task_outside_the_package_trains_and_evaluates_from_the_command_line(t
     result = subprocess.run(evaluate, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     assert "greedy DQN" in result.stdout and "heater off" in result.stdout
+
+
+# a `physicsrl-train` or `physicsrl-bench` command written in a document or a config comment:
+# the command, a benchmark's name, then its overrides (key=value, +key=value) and -m, up to the
+# first other word (prose, a comment, a placeholder, Hydra's print-only flags)
+OVERRIDE = r"(?:-m|[+~]?[\w.]+=[^\s`|<>)]*)"
+DOCUMENTED = re.compile(
+    rf"physicsrl-(train|bench)((?: +(?:ping|ms|env|groups)(?=[\s`]))?(?: +{OVERRIDE}(?=[\s`|]))*)"
+)
+
+
+def documented_commands() -> dict[tuple[str, str], str]:
+    """(command, arguments) -> the file that first writes it, for the commands of the READMEs
+    and of the YAML files' comments, as far as they are concrete."""
+    documents = [ROOT / "README.md", *ROOT.glob("*/README.md"), *ROOT.glob("*/*/README.md")]
+    documents += sorted((ROOT / "conf").rglob("*.yaml"))
+    commands: dict[tuple[str, str], str] = {}
+    for document in documents:
+        for match in DOCUMENTED.finditer(document.read_text()):
+            key = (match.group(1), match.group(2).strip())
+            commands.setdefault(key, str(document.relative_to(ROOT)))
+    return commands
+
+
+def test_every_command_line_in_the_docs_is_a_valid_config():
+    """Each concrete ``physicsrl-train`` (every job of a ``-m`` sweep) and ``physicsrl-bench``
+    command of the READMEs and the config comments passes the command's own validation (the
+    keys, types and ranges, the task's fit; not the layout over ranks, which depends on the
+    job): a renamed key cannot hide in the docs."""
+    import shlex
+
+    from physicsrl.cli.bench import check as check_bench
+    from physicsrl.cli.command import sweep_jobs, validate
+    from physicsrl.cli.train import check_run
+
+    commands = documented_commands()
+    assert len(commands) >= 30, commands  # the extraction still finds them
+    refused = []
+    for (command, arguments), document in commands.items():
+        words = shlex.split(arguments)
+        try:
+            if command == "bench":
+                if words:
+                    check = functools.partial(check_bench, name=words[0])
+                    validate(f"bench_{words[0]}", words[1:], check)
+                continue
+            sweep = "-m" in words
+            words = [w for w in words if w != "-m"]
+            for job in sweep_jobs(words) if sweep else [words]:
+                validate("train", job, check_run)
+        except ValueError as error:
+            refused.append(f"{document}: physicsrl-{command} {arguments}: {error}")
+    assert not refused, "\n".join(refused)
