@@ -25,7 +25,7 @@ train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 test: setup  ## run the test suite (unit and MPI tests; the resolved rows: test-resolved)
 	$(BIN)/python -m pytest
 
-test-resolved: setup  ## the rows of the resolved (1000 x 1000) results tables, on 2 ranks (~5 min)
+test-resolved: setup  ## the rows of the resolved (1000 x 1000) results tables, on 2 ranks (~10 min)
 	$(BIN)/python -m pytest -m resolved
 
 SLURM := tests/slurm/local_slurm.sh

@@ -52,14 +52,29 @@ def test_sb3_example_compares_its_agent_with_the_exact_optimum():
     assert "exact optimum" in run_example("sb3_heat.py", 1)
 
 
-def test_readme_quickstart_runs_under_mpi(mpi, tmp_path):
-    readme = (ROOT / "README.md").read_text()
-    section = readme[readme.index("### Quickstart in Python") :]
-    code = section[section.index("```python") + len("```python") : section.index("```\n\n")]
-    script = tmp_path / "quickstart.py"
-    script.write_text(code)
+def readme_blocks() -> list[str]:
+    """The README's Python blocks that are whole scripts (not those with ``...`` in them)."""
+    parts = (ROOT / "README.md").read_text().split("```python\n")[1:]
+    return [part[: part.index("```")] for part in parts if "..." not in part[: part.index("```")]]
+
+
+# what each block prints under 2 ranks (a regular expression), by a line of the block
+README_PRINTS = {
+    "dojo.train(24)": r"^\{.*'return': ",  # the quickstart's evaluation
+    "counter.add(2.5)": r"^5\.0$",  # 2.5 on each of 2 ranks, once (the leader prints)
+}
+
+
+@pytest.mark.parametrize("block", readme_blocks(), ids=lambda code: code.splitlines()[-1].strip())
+def test_readme_python_blocks_run_under_mpi(mpi, tmp_path, block):
+    """Each complete Python block of the README runs under ``mpiexec -n 2`` and prints what
+    the README says it prints."""
+    script = tmp_path / "readme_block.py"
+    script.write_text(block)
     result = mpi(2, str(script), timeout=600)
-    assert "'return':" in result.stdout
+    for line, printed in README_PRINTS.items():
+        if line in block:
+            assert len(re.findall(printed, result.stdout, re.MULTILINE)) == 1, result.stdout
 
 
 def test_a_task_outside_the_package_trains_and_evaluates_from_the_command_line(tmp_path):
