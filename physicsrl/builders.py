@@ -205,8 +205,9 @@ class OneRandomAction(TensorDictModuleBase):
     one chosen time, and then follows the policy is rare while epsilon is high and rarer still
     when it is low; tasks where one well-timed action decides the episode (a shock) need just
     those episodes. Reads ``step`` (the decision index, shape (*batch, 1)) and ``action``
-    (an index, shape (*batch,), or one-hot, (*batch, n_actions)); acts only under
-    ``ExplorationType.RANDOM`` (the collector's), with torch's global generator (checkpointed).
+    (an index, shape (*batch,), or one-hot, (*batch, n_actions)); acts under
+    ``ExplorationType.RANDOM`` (the collector's) or when none is set, as ``EGreedyModule`` does,
+    with torch's global generator (checkpointed).
     """
 
     def __init__(self, within: int, n_actions: int):

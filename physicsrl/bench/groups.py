@@ -7,8 +7,8 @@ Runs on the job's W ranks with ``mpi.ranks_per_env=P`` (N = W / P environments, 
   all N environments (inducing the arrhythmia; snapshots off), then ``decisions`` batched steps
   with a fixed policy (shock at every ``shock_every``-th decision; success test off, so every
   layout simulates the same time). ``transitions_per_s`` = N x decisions / the steps' time.
-- ``no-op``: the same layout around an environment whose step does nothing (the ATP env's
-  keys and shapes, zeros). ``step_ms`` is the wall time per batched step; ``own_ms`` is that
+- ``no-op``: W environments of one rank each (whatever P) whose step does nothing (the ATP
+  env's keys and shapes, zeros). ``step_ms`` is the wall time per batched step; ``own_ms`` is that
   minus the time the learner waits for the group leaders' replies (``timeit("groups/wait")``):
   the batched env's own cost on the learner (sending the actions, receiving and unpickling the
   replies, the TensorDict work), the figure to fit against N. With more ranks than cores the

@@ -39,7 +39,7 @@ Scheme (equations 4 and 5): forward Euler for :math:`w`, backward Euler for the 
    :class:`~physicsrl.fem.quadrature.CellQuadrature` tables, compiled once by
    :mod:`physicsrl.fem.kernels`; a numpy version when no C compiler is found): the same
    quadrature sum as DOLFINx's assembly of the UFL form, ``rhs="form"``, equal to round-off,
-   15-25x faster. The gate update of step 1 is a C loop too.
+   and about 10x faster (benchmarks/README.md). The gate update of step 1 is a C loop too.
 
 ``scheme="explicit"`` replaces steps 1-2 by the explicit lumped-mass scheme of
 :mod:`physicsrl.fem.explicit` (no linear solve; stable for dt below a limit computed from the
@@ -50,12 +50,11 @@ The applied current :math:`I_\mathrm{app}` is piecewise constant on cells (DG0):
 evaluated at cell midpoints, so a stimulus region whose edges run along mesh nodes stimulates
 the same cells on any number of ranks.
 
-Batching (not implemented): the state is two arrays of local dof values, ``u`` and ``w``, and
-every per-step operation is either pointwise (the gate update), a quadrature kernel reading
-them, or a solve with a matrix that does not depend on the state. B independent
-replicas on one mesh can therefore stack the state as (B, n_local) arrays, share the matrix,
-preconditioner and quadrature tables, assemble the B right-hand sides in one kernel pass and
-solve with a block Krylov method (PETSc ``KSPMatSolve``) on a dense multi-vector.
+Batching: the state is two arrays of local dof values, ``u`` and ``w``, and every per-step
+operation is either pointwise (the gate update), a quadrature kernel reading them, or a solve
+with a matrix that does not depend on the state, so B independent replicas on one mesh stack
+the state as (B, n) arrays and share the operators:
+:class:`~physicsrl.fem.batched.BatchedMonodomain` runs both schemes that way on torch.
 """
 
 from __future__ import annotations
@@ -85,7 +84,7 @@ PARALLEL_PETSC_OPTIONS = {"pc_type": "jacobi"}
 """Solver options on more than one rank, updating
 :data:`~physicsrl.fem.time_problem.DEFAULT_PETSC_OPTIONS` (CG, rtol 1e-10): CG + Jacobi
 instead of block Jacobi/ICC(0), 1.5-2.3x faster per solve on 2 ranks at 1000 x 1000 and
-2000 x 2000 cells (see DEFAULT_PETSC_OPTIONS for the measurements)."""
+2000 x 2000 cells (measurements: benchmarks/README.md, "Choice of the linear solver")."""
 
 
 def default_ms_mesh(comm: MPI.Comm = MPI.COMM_WORLD, n: int = 60, L: float = 50.0) -> mesh.Mesh:
@@ -131,9 +130,9 @@ class MonodomainMitchellSchaeffer(Coordinated):
         gate update is then compiled too), ``"numpy"`` by the same class's vectorised numpy
         kernel, or ``"form"`` by DOLFINx's assembler from the UFL form. All evaluate the same
         quadrature sum and agree to round-off (with ``scheme="explicit"``, ``"compiled"``
-        selects the C pass, the others its numpy version); the kernels are several (numpy)
-        to ~50 (C) times faster than the assembler (no coefficient packing, no geometry
-        recomputed per step).
+        selects the C pass, the others its numpy version); the kernels are faster than the
+        assembler (no coefficient packing, no geometry recomputed per step; about 2.5x for
+        numpy and 10x for C, benchmarks/README.md).
     petsc_options:
         Linear solver options (see :class:`TimeProblem`, and :data:`PARALLEL_PETSC_OPTIONS`
         on more than one rank); ``{"ksp_type": "preonly", "pc_type": "lu"}`` for a direct
