@@ -101,7 +101,7 @@ def main() -> None:
     met = new <= 0.6 * seconds["one env on 2 ranks"]
     lines.append(
         f"goal {'met' if met else 'MISSED'}: mpi.ranks=2 trains the same episodes in <= 0.6x "
-        "the wall time of one environment on 2 ranks"
+        "the training time of one environment on 2 ranks"
     )
     figure, axes = plt.subplots(figsize=(6, 4))
     axes.bar(list(seconds), list(seconds.values()))
