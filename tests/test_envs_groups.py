@@ -88,6 +88,8 @@ def test_faults_end_every_group(ranks, per_env, mode, status):
     if status is None:
         assert result.returncode != 0
         assert output.count("Traceback") == 1, output
+        raised = {"remote": "ValueError: action must be 0 (stop) or 1 (advance), got 5"}
+        assert raised.get(mode, "RuntimeError: the learner failed") in output, output
     else:
         assert result.returncode == status, output
         assert "Traceback" not in output

@@ -48,8 +48,22 @@ def test_thermostat_example_trains_a_policy_better_than_both_constant_ones():
     assert returns["greedy DQN"] > max(returns["heater off"], returns["heater on"]), returns
 
 
+NUMBER = r"(-?[0-9.]+)"
+SB3_BASELINES = re.compile(rf"exact optimum {NUMBER}; stop at once {NUMBER}; never stop {NUMBER}")
+
+
 def test_sb3_example_compares_its_agent_with_the_exact_optimum():
-    assert "exact optimum" in run_example("sb3_heat.py", 1)
+    """Serially and on 2 ranks the example prints the same exact optimum (the simulation is
+    distributed; the optimum does not depend on it), above both trivial policies, and a trained
+    agent's mean return that it bounds (each greedy episode is a stopping time of its level)."""
+    optima = set()
+    for ranks in (1, 2):
+        text = run_example("sb3_heat.py", ranks)
+        agent = float(re.search(rf"mean return {NUMBER}", text).group(1))
+        optimum, stop, never = map(float, SB3_BASELINES.search(text).groups())
+        assert agent <= optimum + 1e-3 and optimum >= max(stop, never), text
+        optima.add((optimum, stop, never))
+    assert len(optima) == 1, optima
 
 
 def readme_blocks() -> list[str]:

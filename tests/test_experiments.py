@@ -87,6 +87,7 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
     assert result.stderr.count("the mesh does not resolve the front") == 1, result.stderr
     summary = json.loads((run / "summary.json").read_text())["summary"]
     assert summary["frames"] == 12 and summary["updates"] > 0
+    assert read(checkpoint_file(run), ["extra"])["extra"]["config"]["loss"]["n_steps"] == 8
     # experiments/store_policy.py keeps the network's weights, without the replay buffer
     stored = tmp_path / "policy.torchrl"
     run_script("store_policy.py", str(run), str(stored))
@@ -209,6 +210,22 @@ def test_two_shock_search_tables_every_pair_on_the_listed_seeds(tmp_path):
     with pytest.raises(SystemExit) as refused:
         run_script("atp_baselines.py", "--open-loop", "--two-shocks", "0", *small)
     assert refused.value.code == 2
+
+
+def test_hindsight_oracle_picks_the_best_policy_per_seed():
+    """On a table worked by hand: seed 0's best is B (3, ended), seed 1's A (5, ended), seed
+    2's A (0, not ended; B's -10 is worse): mean 8 / 3, 2 of 3 ended, seed 2 unended."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from atp_baselines import hindsight
+
+    def row(seed, value, success):
+        return {"seed": seed, "return": value, "success": success}
+
+    rows = {
+        "A": [row(0, 1.0, 0.0), row(1, 5.0, 1.0), row(2, 0.0, 0.0)],
+        "B": [row(0, 3.0, 1.0), row(1, 2.0, 0.0), row(2, -10.0, 0.0)],
+    }
+    assert hindsight(rows) == {"return": 2.667, "success": pytest.approx(2 / 3), "unended": [2]}
 
 
 def test_hindsight_oracle_of_the_timing_bar_is_the_results_tables():

@@ -10,6 +10,7 @@ take seconds; the heat task is trained by ``physicsrl-train`` itself (see docs).
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -23,6 +24,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from physicsrl.config import held_out_seeds
 from tests.conftest import MPIEXEC, ROOT
 
 BIN = Path(sys.executable).parent
@@ -79,7 +81,7 @@ def test_dojo_learns_a_known_optimum(n_steps, action_costs, optimum):
     """In-process, one rank: greedy return of the 3-step chain reaches its optimum 1, with
     one-step and with 3-step TD targets. With stopping charged 2 in training (more than it
     ever pays) the optimum of what is learnt is never to stop: the evaluated return, in the
-    task's own reward, is then 0."""
+    task's own reward, is then 0, with no stop (a wrong stop would also return 0)."""
     sys.path.insert(0, str(TOY.parent))
     from train_toy_env import ToyChainEnv
 
@@ -103,13 +105,15 @@ def test_dojo_learns_a_known_optimum(n_steps, action_costs, optimum):
         logger=c.LoggerConfig(progress=False),
     )
     with coordinator:
-        dojo = Dojo(make_q_network(env, config.agent.network), env, config)
+        q_network = make_q_network(env, config.agent.network)
+        dojo = Dojo(q_network, env, config, action_counts={"stops": 1})
         summary = dojo.train(60)
     assert summary["iteration"] == 60 and summary["frames"] == 960
     buffer = dojo.replay_buffer
     assert len(buffer) == 500  # the configured capacity
     assert summary["eval"]["return"] == pytest.approx(optimum)
     assert summary["eval"]["success"] == optimum
+    assert summary["eval"]["stops"] == optimum  # one stop per episode, at the mark, or none
     stored = buffer[:]
     stops = stored["action"] == 1
     assert stops.any()  # explored
@@ -491,20 +495,25 @@ def test_bad_config_is_a_one_line_error_on_every_rank(tmp_path, override, messag
 
 
 def test_eval_command_tables_a_trained_run(reference, tmp_path):
-    """``physicsrl-eval run=<run dir> seeds=3`` under 2 ranks: table printed once, CSVs (the
-    first 3 held-out seeds) and the learning curve in its own run directory."""
+    """``physicsrl-eval run=<run dir>`` under 2 ranks: table printed once, CSVs (one row per
+    seed of the run's ``eval.seeds``, the first 10 held out) and the learning curve in its own
+    run directory; the greedy policy's mean is the training's final evaluation (same policy,
+    same seeds, another code path)."""
     _, run_dir, _ = reference
     out = tmp_path / "eval"
     arguments = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={run_dir}"]
-    result = run([*arguments, "seeds=3", f"hydra.run.dir={out}"], tmp_path, timeout=120)
+    result = run([*arguments, f"hydra.run.dir={out}"], tmp_path, timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.count("greedy DQN") == 1
     assert f"{checkpoint_name(ITERATIONS)} (iteration {ITERATIONS}" in result.stdout
     for name in ("eval.csv", "eval_summary.csv", "learning_curve.png"):
         assert (out / name).exists(), name
-    rows = (out / "eval.csv").read_text().splitlines()
-    assert rows[0].startswith("policy,seed,return,length") and len(rows) == 1 + 3
-    assert [row.split(",")[1] for row in rows[1:]] == ["1000000000", "1000000001", "1000000002"]
+    rows = list(csv.DictReader((out / "eval.csv").open()))
+    assert [int(row["seed"]) for row in rows] == held_out_seeds(10)
+    means = {row["policy"]: row for row in csv.DictReader((out / "eval_summary.csv").open())}
+    trained = json.loads((run_dir / "summary.json").read_text())["summary"]["eval"]
+    assert trained["iteration"] == ITERATIONS
+    assert float(means["greedy DQN"]["return"]) == pytest.approx(trained["return"])
 
 
 @pytest.mark.parametrize(
