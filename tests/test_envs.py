@@ -1,5 +1,7 @@
 """The heat task, the factory and its configs, rewards (issue 4)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -9,6 +11,7 @@ from torchrl.envs.utils import check_env_specs
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import ATPReward, HeatStop, exact_optimum, load_config, make_env
 from physicsrl.envs.baselines import Constant, HeatOptimal
+from physicsrl.envs.registry import shipped_option
 from physicsrl.evaluation import run_episode
 from physicsrl.tables import mean_metrics
 
@@ -157,3 +160,40 @@ def test_atp_reward_by_hand():
 def test_bad_config_values_raise_naming_the_key(groups, override, message):
     with pytest.raises(ValueError, match=message.replace(".", r"\.")):
         make_env(load_config(*groups, [override]), Coordinator())
+
+
+SHIPPED = Path(__file__).resolve().parents[1] / "conf"
+
+
+@pytest.mark.parametrize("option", sorted(p.stem for p in (SHIPPED / "env").glob("*.yaml")))
+def test_load_config_is_the_groups_hydra_composes(option):
+    """``load_config`` (no Hydra) gives every shipped env, with the observation and reward its
+    YAML chooses, exactly the groups ``physicsrl-train env=<option>`` composes: a variant's base
+    included (``ms_resolved`` on ``ms``)."""
+    from physicsrl.checks import plain
+    from physicsrl.cli.command import compose
+
+    composed = plain(compose("train", [f"env={option}"]))
+    groups = ("env", "observation", "reward")
+    names = [composed["observation"]["name"], composed["reward"]["name"]]
+    loaded = plain(load_config(option, *names))
+    assert {g: loaded[g] for g in groups} == {g: composed[g] for g in groups}
+
+
+@pytest.mark.parametrize(
+    "group, option",
+    [("env", "heat"), ("env", "ms")]
+    + [(g, p.stem) for g in ("observation", "reward") for p in (SHIPPED / g).glob("*.yaml")],
+)
+def test_a_shipped_base_yaml_states_its_classs_defaults(group, option):
+    """The YAML of a task, observation or reward (not a variant of another, such as
+    ``ms_resolved``) sets each of its settings to the default of its dataclass: the settings that
+    a Python user gets without the YAML, and that an older run's record lacks, are the shipped
+    ones."""
+    from physicsrl.checks import build
+    from physicsrl.envs import OBSERVATIONS, REWARDS, TASKS
+
+    registry = {"env": TASKS, "observation": OBSERVATIONS, "reward": REWARDS}[group]
+    found, settings = registry.lookup(shipped_option(group, option))
+    cls = found.Config if group == "env" else found
+    assert build(cls, settings, group) == cls()

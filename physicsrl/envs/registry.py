@@ -97,7 +97,23 @@ def load_config(
     from omegaconf import OmegaConf
 
     groups = {"env": env, "observation": observation, "reward": reward}
-    cfg = OmegaConf.create({g: OmegaConf.load(shipped(g, n)) for g, n in groups.items()})
-    cfg.env.pop("defaults", None)  # Hydra's choice of the other groups: given here
+    cfg = OmegaConf.create({g: shipped_option(g, n) for g, n in groups.items()})
     cfg.seed = seed
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+
+
+def shipped_option(group: str, option: str):
+    """The shipped ``conf/<group>/<option>.yaml`` merged onto the options of the same group that
+    its defaults list names, in that list's order (``_self_`` last unless placed), as Hydra
+    composes it: ``ms_resolved`` is ``ms`` changed. The entries that choose other groups (an
+    env's observation and reward) are left out."""
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.load(shipped(group, option))
+    defaults = list(node.pop("defaults", []))
+    if "_self_" not in defaults:
+        defaults.append("_self_")
+    parts = [
+        node if d == "_self_" else shipped_option(group, d) for d in defaults if isinstance(d, str)
+    ]
+    return OmegaConf.merge(*parts)
