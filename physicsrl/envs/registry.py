@@ -7,8 +7,9 @@ outside the package is found through the YAML's ``module`` key: a module name
 (``mylab.tasks``) or a ``.py`` file (relative to the working directory) imported, once, before
 the name is looked up (``examples/thermostat.py`` and its YAML in ``examples/conf/``).
 
-:func:`shipped` finds the shipped YAML files and :func:`load_config` composes them without
-Hydra (torch-free, like the registries: the commands check settings before importing torch).
+:func:`shipped` finds the shipped YAML files, :func:`shipped_option` reads one onto its base
+(``ms_resolved`` onto ``ms``) and :func:`load_config` composes them without Hydra (torch-free,
+like the registries: the commands check settings before importing torch).
 """
 
 from __future__ import annotations
