@@ -24,6 +24,7 @@ from physicsrl.coordinated import Coordinator
 from physicsrl.envs import load_config, make_env
 from physicsrl.envs.baselines import Constant, EveryKth
 from physicsrl.envs.batched import BatchedATPEnv
+from physicsrl.envs.gym import GymnasiumVectorView
 from physicsrl.envs.members import member_seed
 from physicsrl.evaluation import compare, run_episode
 from tests.conftest import MPIEXEC
@@ -216,6 +217,33 @@ def test_policies_share_the_replicas_and_each_episode_is_its_own():
     for row, reference in zip(rows, expected, strict=True):
         assert row["return"] == pytest.approx(reference["return"], abs=1e-4)
         assert (row["length"], row["shocks"]) == (reference["length"], reference["shocks"])
+
+
+def test_gymnasium_vector_view_of_replicas_steps_as_the_env():
+    """``GymnasiumVectorView`` over 2 replicas gives the observations and rewards of the
+    TorchRL env seeded alike, and restarts the episodes that end (2 decisions and 2 extra waits
+    here) within the step, keeping their last observations in ``final_obs``."""
+    env, view = batched(2), GymnasiumVectorView(batched(2))
+    assert view.single_observation_space.shape == (20,) and view.num_envs == 2
+    td = env.reset()
+    observations, _ = view.reset(seed=3)
+    np.testing.assert_array_equal(observations, td["observation"].numpy())
+    ends, steps = [], []
+    for actions in ([1, 0], [0, 1], [1, 1]):
+        td["action"] = torch.tensor(actions)
+        stepped, td = env.step_and_maybe_reset(td)
+        observations, rewards, terminated, truncated, infos = view.step(actions)
+        np.testing.assert_array_equal(rewards, stepped["next", "reward"].numpy().ravel())
+        np.testing.assert_array_equal(observations, td["observation"].numpy())
+        ended = stepped["next", "done"].numpy().ravel()
+        np.testing.assert_array_equal(terminated | truncated, ended)
+        if ended.any():
+            final = np.stack(infos["final_obs"][ended])
+            np.testing.assert_array_equal(final, stepped["next", "observation"].numpy()[ended])
+        ends.append(ended.tolist())
+        steps.append(infos["step"].tolist())
+    assert ends == [[False, False], [True, True], [False, False]]
+    assert steps == [[1, 1], [0, 0], [1, 1]]  # restarted within the second step
 
 
 @pytest.mark.parametrize(

@@ -34,9 +34,10 @@ def test_each_environment_is_its_serial_self(tmp_path, ranks, per_env):
         np.testing.assert_allclose(
             batched["observation"][i], serial["observation"], rtol=1e-6, atol=1e-6
         )
-    if n > 1:  # the Gymnasium vector form: the same rewards, autoreset within the step
-        vector = np.array(result["vector_rewards"]).T
-        np.testing.assert_allclose(vector, batched["reward"], rtol=1e-6, atol=1e-6)
+    # the Gymnasium vector form (of the plain env too): the same rewards, autoreset in the step
+    vector = np.array(result["vector_rewards"]).T
+    np.testing.assert_allclose(vector, batched["reward"], rtol=1e-6, atol=1e-6)
+    if n > 1:
         assert len(result["evaluated"]) == 3
         for spread, serial in zip(result["evaluated"], result["serial_eval"], strict=True):
             np.testing.assert_allclose(spread["reward"], serial["reward"], rtol=1e-6, atol=1e-6)

@@ -40,12 +40,11 @@ from dataclasses import dataclass
 
 import torch
 from mpi4py import MPI
-from tensordict import TensorDictBase
 from torchrl import timeit
 from torchrl.envs import EnvBase
 
 from physicsrl.coordinated import Coordinator, wait_for
-from physicsrl.envs.members import Members, numpy_leaves
+from physicsrl.envs.members import Members, OneMember, as_members
 from physicsrl.launch import check_layout
 
 __all__ = ["GroupedEnv", "Layout", "environments", "serve"]
@@ -80,38 +79,7 @@ class Layout:
         return cls(world, ranks_per_env, world.size // ranks_per_env, group, comm, leaders)
 
 
-class _OneMember:
-    """A plain environment seen as a batch of one member (index 0): the interface of
-    :class:`~physicsrl.envs.members.Members` that the groups speak."""
-
-    def __init__(self, env: EnvBase):
-        self.env = env
-        self.state: TensorDictBase | None = None  # the env's current tensordict
-
-    def seed_each(self, seeds, indices=(0,)):
-        self.env.set_seed(seeds[0])
-
-    def reset_some(self, indices) -> dict[int, dict]:
-        self.state = self.env.reset()
-        return {0: numpy_leaves(self.state)}
-
-    def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
-        self.state["action"] = torch.as_tensor(actions[0])
-        self.state = self.env.step(self.state)["next"]
-        return {0: numpy_leaves(self.state)}
-
-    def rng_state(self) -> list[dict]:
-        return [self.env.rng.bit_generator.state]
-
-    def set_rng_state(self, states) -> None:
-        self.env.rng.bit_generator.state = states[0]
-
-
-def _members(env: EnvBase) -> Members | _OneMember:
-    return env if isinstance(env, Members) else _OneMember(env)
-
-
-def _run(members: Members | _OneMember, command: int, argument):
+def _run(members: Members | OneMember, command: int, argument):
     """Carry out ``command`` on a group's members (local indices; on its group leader)."""
     if command == _SEED:
         seeds, indices = argument
@@ -130,7 +98,7 @@ def _run(members: Members | _OneMember, command: int, argument):
 class _Group:
     """One group's environment as seen from world rank 0: local (group 0) or remote."""
 
-    def __init__(self, index: int, members: Members | _OneMember | None, leaders: MPI.Comm):
+    def __init__(self, index: int, members: Members | OneMember | None, leaders: MPI.Comm):
         self.index, self.members, self.leaders = index, members, leaders
 
     def send(self, command: int, argument=None) -> None:
@@ -152,7 +120,7 @@ def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: fl
     coordinator's follower does (:func:`~physicsrl.coordinated.wait_for`: busily for ``spin_s``
     seconds, then sleeping at most ``max_sleep_s`` between polls), so that it leaves the core
     to a learner that trains."""
-    members = _members(env)
+    members = as_members(env)
     oversubscribed = leaders.Get_size() > len(os.sched_getaffinity(0))
     request = functools.partial(leaders.Iprobe, source=0, tag=_REQUEST)
     while True:
@@ -180,7 +148,7 @@ class GroupedEnv(Members):
         n = layout.n_envs * self.per_group
         super().__init__(n, device=env.device)
         self.layout = layout
-        self.groups = [_Group(0, _members(env), layout.leaders)] + [
+        self.groups = [_Group(0, as_members(env), layout.leaders)] + [
             _Group(g, None, layout.leaders) for g in range(1, layout.n_envs)
         ]
         self.local_env = env

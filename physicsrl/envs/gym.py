@@ -12,8 +12,10 @@ import gymnasium
 import numpy as np
 import torch
 from tensordict import TensorDict
+from torchrl.envs import EnvBase
 
 from physicsrl.envs.env import PhysicsEnv
+from physicsrl.envs.members import Members, as_members, member_seed
 
 
 class GymnasiumView(gymnasium.Env):
@@ -51,8 +53,10 @@ class GymnasiumView(gymnasium.Env):
 
 
 class GymnasiumVectorView(gymnasium.vector.VectorEnv):
-    """``gymnasium.vector.VectorEnv`` adapter of the N environments of a
-    :class:`~physicsrl.envs.groups.GroupedEnv` (N simulator groups; the learner's rank).
+    """``gymnasium.vector.VectorEnv`` adapter of the N environments that
+    :func:`~physicsrl.envs.groups.environments` gives the learner's rank: the groups of a
+    :class:`~physicsrl.envs.groups.GroupedEnv` (each one environment or a batch of replicas), a
+    :class:`~physicsrl.envs.batched.BatchedATPEnv`'s replicas, or one plain env (N = 1).
 
     Spaces: the single env's, batched (``(N, size)`` observations, ``MultiDiscrete`` actions).
     Autoreset ``SAME_STEP``: an environment whose episode ends restarts within the same
@@ -64,14 +68,13 @@ class GymnasiumVectorView(gymnasium.vector.VectorEnv):
 
     metadata = {"render_modes": [], "autoreset_mode": gymnasium.vector.AutoresetMode.SAME_STEP}
 
-    def __init__(self, env):
-        self.env = env
-        self.num_envs = env.batch_size[0]
-        task = env.local_env.task
+    def __init__(self, env: EnvBase):
+        self.env = as_members(env)
+        self.num_envs = env.batch_size[0] if isinstance(env, Members) else 1
+        task = env.task if isinstance(env, Members) else vars(env)["task"]  # or the task's class
         self._info_keys = ("step", "diverged", *task.flags)
-        self.single_observation_space = gymnasium.spaces.Box(
-            -np.inf, np.inf, (task.observation.size,), np.float32
-        )
+        size = env.observation_spec["observation"].shape[-1]
+        self.single_observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (size,), np.float32)
         self.single_action_space = gymnasium.spaces.Discrete(task.n_actions)
         batch = gymnasium.vector.utils.batch_space
         self.observation_space = batch(self.single_observation_space, self.num_envs)
@@ -84,7 +87,7 @@ class GymnasiumVectorView(gymnasium.vector.VectorEnv):
 
     def reset(self, *, seed=None, options: dict | None = None):
         if isinstance(seed, int):
-            self.env.set_seed(seed)
+            self.env.seed_each([member_seed(seed, i) for i in range(self.num_envs)])
         elif seed is not None:
             self.env.seed_each(list(seed))
         rows = self.env.reset_some(list(range(self.num_envs)))

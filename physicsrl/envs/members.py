@@ -26,7 +26,7 @@ from torchrl.envs import EnvBase
 
 from physicsrl.config import SEED_STRIDE
 
-__all__ = ["Members", "member_seed", "spread_episodes"]
+__all__ = ["Members", "OneMember", "as_members", "member_seed", "spread_episodes"]
 
 
 def member_seed(seed: int | None, index: int) -> int | None:
@@ -100,6 +100,40 @@ class Members(EnvBase):
 def numpy_leaves(td: TensorDictBase) -> dict:
     """The leaves of an unbatched tensordict as numpy arrays (cheap to pickle)."""
     return {key: value.numpy() for key, value in td.items(True, True)}
+
+
+class OneMember:
+    """A plain environment seen as a batch of one member (index 0): the interface of
+    :class:`Members` (seeding, resets, steps and generator states by member)."""
+
+    def __init__(self, env: EnvBase):
+        self.env = env
+        self.state: TensorDictBase | None = None  # the env's current tensordict
+
+    def seed_each(self, seeds, indices=(0,)):
+        self.env.set_seed(seeds[0])
+
+    def reset_some(self, indices) -> dict[int, dict]:
+        if 0 not in indices:
+            return {}
+        self.state = self.env.reset()
+        return {0: numpy_leaves(self.state)}
+
+    def step_some(self, actions: dict[int, int]) -> dict[int, dict]:
+        self.state["action"] = torch.as_tensor(actions[0])
+        self.state = self.env.step(self.state)["next"]
+        return {0: numpy_leaves(self.state)}
+
+    def rng_state(self) -> list[dict]:
+        return [self.env.rng.bit_generator.state]
+
+    def set_rng_state(self, states) -> None:
+        self.env.rng.bit_generator.state = states[0]
+
+
+def as_members(env: EnvBase) -> Members | OneMember:
+    """``env`` itself if it is a batch of members, else ``env`` as a batch of one."""
+    return env if isinstance(env, Members) else OneMember(env)
 
 
 def _tensordict(leaves: dict) -> TensorDict:

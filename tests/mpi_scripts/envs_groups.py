@@ -59,12 +59,11 @@ with abort_on_error():
                 else []
             )
             vector_rewards = []
-            if n > 1:
-                vector = GymnasiumVectorView(env)
-                _, info = vector.reset(seed=SEED)
-                for _ in range(STEPS):
-                    _, reward, _, _, info = vector.step(info["step"] % 3 != 2)
-                    vector_rewards.append(reward.tolist())
+            vector = GymnasiumVectorView(env)
+            _, info = vector.reset(seed=SEED)
+            for _ in range(STEPS):
+                _, reward, _, _, info = vector.step(info["step"] % 3 != 2)
+                vector_rewards.append(reward.tolist())
             check_env_specs(env)
     if MPI.COMM_WORLD.rank == 0:
         coordinator = Coordinator(MPI.COMM_SELF)
