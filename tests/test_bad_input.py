@@ -106,6 +106,8 @@ ROWS = [
     ("train", ["eval.seeds=[3]"], "eval.seeds [3] are also training seeds"),
     ("train", ["env=ms", "env.replicas=4"], "env.replicas must be 1 with model.backend=petsc"),
     ("train", ["env=ms", "env.model.backend=jax"], "env.model.backend must be one of petsc, torch"),
+    ("train", ["env=ms", "env.model.device=cuda"], "env.model.device=cuda needs backend=torch"),
+    ("train", ["env=ms", "env.model.substeps=2"], "env.model.substeps must be 1 unless scheme"),
     (
         "train",
         ["env=ms", "env.model.backend=torch", "env.replicas=10000000"],
@@ -133,6 +135,7 @@ ROWS = [
     ("bench_ping", ["nosuch=1"], "'nosuch'"),
     ("bench_ms", ["grid.n=1"], "grid.n=1: must be an integer >= 2"),
     ("bench_ms", ["baseline=maybe"], "baseline=maybe: must be true or false"),
+    ("bench_ms", ["scheme=foo"], "scheme=foo: must be one of implicit, explicit, both"),
     ("bench_env", ["decisions=0"], "decisions=0: must be an integer >= 1"),
     ("bench_groups", ["decisions=0"], "decisions=0: must be an integer >= 1"),
     ("bench_groups", ["noop_steps=-1"], "noop_steps=-1: must be an integer >= 1"),

@@ -258,7 +258,13 @@ def test_gymnasium_vector_view_of_replicas_steps_as_the_env():
             "env.replicas must be an integer >= 1, got 0",
         ),
         (("env.replicas=4",), "env.replicas must be 1 with model.backend=petsc"),
-        (("env.model.compile=true",), "dtype=auto and compile=True need backend=torch"),
+        (("env.model.compile=true",), "env.model.compile=True needs backend=torch"),
+        (("env.model.device=cuda",), "env.model.device=cuda needs backend=torch"),
+        (
+            ("env.model.dtype=float32", "env.model.compile=true"),
+            "env.model.dtype=float32 and compile=True need backend=torch",
+        ),
+        (("env.model.substeps=2",), "env.model.substeps must be 1 unless scheme=explicit"),
         (
             ("env.model.backend=torch", "env.model.dtype=float16"),
             "env.model.dtype must be one of auto, float64, float32, got 'float16'",

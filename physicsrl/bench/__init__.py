@@ -1,17 +1,18 @@
 """Benchmarks behind ``physicsrl-bench``: each module has ``run(cfg) -> list[dict]`` (table rows)
 and optionally ``goals(rows)``.
 
-:data:`SETTINGS` holds, per benchmark, the type and least value of each of its settings
-(``conf/bench_<name>.yaml``), checked before the benchmark's module is imported (it imports
-torch or DOLFINx, seconds): a bad value is a one-line error at once.
+:data:`SETTINGS` holds, per benchmark, the type and least value of each of its settings, or
+the tuple of its choices (``conf/bench_<name>.yaml``), checked before the benchmark's module is
+imported (it imports torch or DOLFINx, seconds): a bad value is a one-line error at once.
 """
 
-SETTINGS: dict[str, dict[str, tuple[type, float | None]]] = {
+SETTINGS: dict[str, dict[str, tuple[type | tuple[str, ...], float | None]]] = {
     "ping": {"calls": (int, 1), "repeats": (int, 1), "idle_seconds": (float, 0.0)},
     "ms": {
         "grid.n": (int, 2),
         "steps": (int, 1),
         "steps_per_call": (int, 1),
+        "scheme": (("implicit", "explicit", "both"), None),
         "baseline": (bool, None),
     },
     "env": {

@@ -2,10 +2,10 @@
 
 Each benchmark ``NAME`` is the module ``physicsrl.bench.NAME`` (``run(cfg) -> rows``, and
 optionally ``goals(rows)``) with the config ``conf/bench_NAME.yaml``, whose settings are
-checked against ``physicsrl.bench.SETTINGS[NAME]`` (type and least value) before any work and
-before the module is imported, for every job of a ``-m`` sweep. The leader prints the table
-and the goals and writes ``NAME.csv`` and ``NAME.json`` (with the command line) into the run
-directory.
+checked against ``physicsrl.bench.SETTINGS[NAME]`` (type and least value, or choices) before
+any work and before the module is imported, for every job of a ``-m`` sweep. The leader prints
+the table and the goals and writes ``NAME.csv`` and ``NAME.json`` (with the command line) into
+the run directory.
 """
 
 from __future__ import annotations
@@ -33,13 +33,17 @@ USAGE = "usage: physicsrl-bench NAME [key=value ...] [mpi.ranks=N] [--help | --c
 )
 
 
-def check_settings(cfg, settings: dict[str, tuple[type, float | None]]) -> None:
+def check_settings(cfg, settings: dict[str, tuple[type | tuple[str, ...], float | None]]) -> None:
     """ValueError naming a setting that is not of its type (int, float or bool) or is below its
-    least value (None: no bound)."""
+    least value (None: no bound), or is not one of its choices (a tuple of strings)."""
     from omegaconf import OmegaConf
 
     for key, (kind, least) in settings.items():
         value = OmegaConf.select(cfg, key)
+        if isinstance(kind, tuple):
+            if value not in kind:
+                raise ValueError(f"{key}={value}: must be one of {', '.join(kind)}")
+            continue
         allowed = (int, float) if kind is float else kind
         if kind is bool:
             ok = isinstance(value, bool)

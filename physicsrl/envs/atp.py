@@ -104,7 +104,11 @@ class MSModel:
         number("u_gate", self.u_gate)
         if self.scheme not in SCHEMES:
             raise ValueError(f"scheme must be one of {SCHEMES}, got {self.scheme!r}")
-        integer("substeps", self.substeps, 1)
+        if integer("substeps", self.substeps, 1) != 1 and self.scheme != "explicit":
+            raise ValueError(
+                f"substeps must be 1 unless scheme=explicit (the implicit scheme takes whole "
+                f"steps of dt), got {self.substeps!r}"
+            )
         if not isinstance(self.warn_resolution, bool):
             raise ValueError(f"warn_resolution must be true or false, got {self.warn_resolution!r}")
         choice("backend", self.backend, BACKENDS)
@@ -112,10 +116,12 @@ class MSModel:
         choice("dtype", self.dtype, DTYPES)
         if not isinstance(self.compile, bool):
             raise ValueError(f"compile must be true or false, got {self.compile!r}")
-        if self.backend != "torch" and (self.dtype != DTYPES[0] or self.compile):
+        torch_only = {"device": "cpu", "dtype": DTYPES[0], "compile": False}  # and their defaults
+        chosen = [f"{k}={getattr(self, k)}" for k, v in torch_only.items() if getattr(self, k) != v]
+        if self.backend != "torch" and chosen:
             raise ValueError(
-                f"dtype={self.dtype} and compile={self.compile} need backend=torch (the PETSc "
-                "backend is float64 with its own compiled kernels)"
+                f"{' and '.join(chosen)} need{'s' if len(chosen) == 1 else ''} backend=torch "
+                "(the PETSc backend runs in float64 on the CPU, with its own compiled kernels)"
             )
 
     def numerics(self) -> dict:
