@@ -172,7 +172,7 @@ def _serialise(args: tuple, kwargs: dict) -> tuple[bytes, int]:
     """Pickle call arguments, falling back to cloudpickle; raise TypeError if neither can."""
     try:
         return pickle.dumps((args, kwargs), protocol=5), _PICKLE
-    except (pickle.PicklingError, AttributeError, TypeError):
+    except Exception:  # noqa: BLE001 - PicklingError, TypeError, ValueError (an MPI comm), ...
         pass
     import cloudpickle
 
