@@ -19,7 +19,7 @@ from physicsrl.fem.integrals import (  # noqa: E402
     quadrant_weights,
 )
 from physicsrl.fem.monodomain import MonodomainMitchellSchaeffer, default_ms_mesh  # noqa: E402
-from physicsrl.fem.output import FieldRecorder  # noqa: E402
+from physicsrl.fem.output import FieldRecorder, read_series, render_series  # noqa: E402
 from physicsrl.fem.plot import plot_field  # noqa: E402
 from physicsrl.fem.time_problem import DEFAULT_PETSC_OPTIONS, TimeProblem  # noqa: E402
 
@@ -38,4 +38,6 @@ __all__ = [
     "default_ms_mesh",
     "plot_field",
     "quadrant_weights",
+    "read_series",
+    "render_series",
 ]

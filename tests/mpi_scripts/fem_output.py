@@ -9,8 +9,13 @@ from mpi4py import MPI
 
 from physicsrl.bench.ms import DT, w0
 from physicsrl.coordinated import Coordinated, Coordinator, parallel
-from physicsrl.fem import MonodomainMitchellSchaeffer, default_ms_mesh
-from physicsrl.fem.output import FieldRecorder, read_series, render_series
+from physicsrl.fem import (  # as the README imports them
+    FieldRecorder,
+    MonodomainMitchellSchaeffer,
+    default_ms_mesh,
+    read_series,
+    render_series,
+)
 
 series_path, png_path = sys.argv[1], sys.argv[2]
 
