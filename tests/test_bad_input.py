@@ -110,6 +110,12 @@ ROWS = [
     ("train", ["env=ms", "env.model.substeps=2"], "env.model.substeps must be 1 unless scheme"),
     (
         "train",
+        ["env=ms", "env.mesh.cells=4000", "env.model.scheme=explicit"],
+        "env.model.dt / model.substeps = 0.03 exceeds the explicit scheme's stability limit "
+        "0.01803 on 4000 x 4000 cells of side 0.025: raise model.substeps",
+    ),
+    (
+        "train",
         ["env=ms", "env.model.backend=torch", "env.replicas=10000000"],
         "env.replicas=10000000 would need about 1.79e+03 GB (48 bytes per replica and dof)",
     ),

@@ -137,6 +137,18 @@ def test_expected_cv_error_is_the_simulated_one(converged_cv, scheme, h):
         assert abs(error) < 0.025, error
 
 
+@pytest.mark.parametrize("cell_type", ["quadrilateral", "triangle"])
+def test_a_task_checks_the_explicit_limit_on_a_small_copy_of_its_mesh(cell_type):
+    """The stability limit a task's config checks before any mesh is built (on 4 x 4 cells of
+    the same side) is the simulator's on the whole mesh (24 x 24 cells)."""
+    from physicsrl.envs.task import SquareMesh
+
+    square = SquareMesh(24, 50.0, cell_type)
+    coordinator = Coordinator(MPI.COMM_SELF)
+    ms = MonodomainMitchellSchaeffer(coordinator, square.create(MPI.COMM_SELF), scheme="explicit")
+    assert square.explicit_limit(D) == pytest.approx(ms._explicit.dt_max, rel=1e-12)
+
+
 def test_explicit_scheme_refuses_an_unstable_dt():
     """On 100 x 100 cells of the unit square (h = 0.01) the explicit limit is
     3 h^2 / (8 D) = 2.9e-3 (Gershgorin): dt = 0.03 is refused with one line naming dt, the

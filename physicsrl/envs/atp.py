@@ -289,6 +289,14 @@ class ATPConfig:
                 f"replicas must be 1 with model.backend=petsc (replicas need model.backend="
                 f"torch; more PETSc environments come from mpi.ranks), got {self.replicas!r}"
             )
+        step, model = self.model.dt / self.model.substeps, self.model
+        if model.scheme == "explicit" and step > (limit := self.mesh.explicit_limit(model.D)):
+            raise ValueError(
+                f"model.dt / model.substeps = {step:g} exceeds the explicit scheme's stability "
+                f"limit {limit:.4g} on {self.mesh.cells} x {self.mesh.cells} cells of side "
+                f"{2 * self.mesh.extent / self.mesh.cells:g}: raise model.substeps or use "
+                "model.scheme=implicit"
+            )
         if self.shock.duration > self.decision_interval:
             raise ValueError(
                 f"shock.duration must be <= decision_interval = {self.decision_interval}, "

@@ -47,6 +47,21 @@ class SquareMesh:
         kind = getattr(dmesh.CellType, self.cell_type)
         return dmesh.create_rectangle(comm, [[-e, -e], [e, e]], [self.cells, self.cells], kind)
 
+    def explicit_limit(self, D: float) -> float:
+        """The explicit scheme's stability limit (:func:`~physicsrl.fem.explicit.stability_limit`)
+        with diffusivity ``D`` on this mesh, computed on this process from a copy of at most
+        4 x 4 cells of the same side: the bound depends on the cell side alone, and the copy has
+        every kind of node (corners, edges, interior)."""
+        from dolfinx import fem
+
+        from physicsrl.fem.explicit import lumped_mass, stability_limit, stiffness_rows
+
+        n = min(self.cells, 4)
+        copy = SquareMesh(n, self.extent * n / self.cells, self.cell_type).create(MPI.COMM_SELF)
+        V = fem.functionspace(copy, ("Lagrange", 1))
+        indptr, _, values, _ = stiffness_rows(V)
+        return stability_limit(np.add.reduceat(np.abs(values), indptr[:-1]), lumped_mass(V), D)
+
 
 @dataclass
 class Transition:

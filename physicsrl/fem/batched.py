@@ -68,7 +68,7 @@ import ufl
 from dolfinx import fem, mesh
 
 from physicsrl.fem.errors import InvalidValue, SimulationDiverged
-from physicsrl.fem.explicit import lumped_mass
+from physicsrl.fem.explicit import lumped_mass, stability_limit
 from physicsrl.fem.grid import grid_of
 from physicsrl.fem.monodomain import SCHEMES
 from physicsrl.fem.quadrature import CellQuadrature
@@ -203,7 +203,7 @@ class BatchedMonodomain:
         if scheme == "explicit":
             m = lumped_mass(V)
             row_sums = np.asarray(abs(stiffness).sum(axis=1)).ravel()
-            self.dt_max = 2.0 / (D * float((row_sums / m).max()))
+            self.dt_max = stability_limit(row_sums, m, D)
             if h > self.dt_max:
                 raise InvalidValue(
                     f"dt / substeps = {h:g} exceeds the explicit scheme's stability limit "

@@ -84,6 +84,14 @@ def stiffness_rows(V: fem.FunctionSpace) -> tuple[np.ndarray, np.ndarray, np.nda
     return indptr, indices, np.array(K.data[: indptr[-1]], dtype=np.float64), K.index_map(1)
 
 
+def stability_limit(row_sums: np.ndarray, mass: np.ndarray, D: float, comm=None) -> float:
+    r"""The explicit scheme's largest stable (sub-)step, :math:`2 / (D \max_i \sum_j |K_{ij}| /
+    m_i)` (Gershgorin, module docstring), from the rows' sums of :math:`|K_{ij}|` and their
+    lumped masses; the maximum over ``comm``'s ranks when given (a reduction)."""
+    local = float((row_sums / mass).max(initial=0.0))
+    return 2.0 / (D * (local if comm is None else comm.allreduce(local, op=MPI.MAX)))
+
+
 GRID_MIN_STEPS = 8
 """Fewest steps per :meth:`ExplicitStep.advance` for which the structured path is taken."""
 
@@ -114,9 +122,7 @@ class ExplicitStep:
             self.state = u.x
         rows = np.repeat(np.arange(self.owned), np.diff(indptr))
         row_sums = np.add.reduceat(np.abs(values), indptr[:-1]) if self.owned else np.zeros(0)
-        self.dt_max = 2.0 / (
-            D * self.comm.allreduce(float((row_sums / self.mass).max(initial=0.0)), op=MPI.MAX)
-        )
+        self.dt_max = stability_limit(row_sums, self.mass, D, self.comm)
         values *= -self.dt * D / self.mass[rows]
         values[indices == rows] += 1.0
         # Rows padded to one width (ELLPACK) with zeros at the diagonal's column.
