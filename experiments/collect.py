@@ -4,8 +4,9 @@
 
 Reads each job directory's ``summary.json`` (written by ``physicsrl-train``) and
 ``.hydra/overrides.yaml`` (what the job changed), and prints one row per job: the overrides,
-the greedy policy's mean return on the held-out seeds, the best baseline's, the success rate
-where the task has one, and the training time.
+the greedy policy's mean return on the held-out seeds, the best baseline's (left empty with
+``eval.baselines=false``, as the ATP presets set it), the success rate where the task has one,
+and the training time. A job stopped before its first evaluation has no greedy return.
 """
 
 from __future__ import annotations
@@ -25,14 +26,14 @@ def row(job: Path) -> dict:
     summary = json.loads((job / "summary.json").read_text())
     overrides = yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text()) or []
     policies = {entry["policy"]: entry for entry in summary["table"]}
-    greedy = policies.pop("greedy DQN")
-    best = max(policies.values(), key=lambda entry: entry["return"])
+    greedy = policies.pop("greedy DQN", {})
+    best = max(policies.values(), key=lambda entry: entry["return"], default={})
     result = {
         "job": job.name,
         "overrides": " ".join(o for o in overrides if not o.startswith(IMPLIED)),
-        "greedy_return": round(greedy["return"], 3),
-        "best_baseline": best["policy"],
-        "best_baseline_return": round(best["return"], 3),
+        "greedy_return": round(greedy["return"], 3) if greedy else "",
+        "best_baseline": best.get("policy", ""),
+        "best_baseline_return": round(best["return"], 3) if best else "",
         "train_s": round(summary["summary"]["total_s"], 1),
     }
     if "success" in greedy:

@@ -131,6 +131,38 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     assert all(float(row["train_s"]) > 0 for row in rows)
 
 
+def test_collect_tables_jobs_without_baselines_or_evaluations(tmp_path):
+    """``collect.py`` on three job directories: with baselines (the best one named), without
+    (``eval.baselines=false``, the ATP presets': empty cells), and stopped before any
+    evaluation (no greedy return)."""
+    tables = {
+        "0": [
+            {"policy": "greedy DQN", "return": 4.0, "success": 0.5},
+            {"policy": "never", "return": 1.0},
+            {"policy": "always", "return": 2.5},
+        ],
+        "1": [{"policy": "greedy DQN", "return": 3.0, "success": 1.0}],
+        "2": [],
+    }
+    for job, table in tables.items():
+        (tmp_path / job / ".hydra").mkdir(parents=True)
+        (tmp_path / job / ".hydra" / "overrides.yaml").write_text(f"- seed={job}\n")
+        summary = {"summary": {"total_s": 10.0 + int(job)}, "table": table}
+        (tmp_path / job / "summary.json").write_text(json.dumps(summary))
+    out = tmp_path / "table.csv"
+    script = [sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path)]
+    subprocess.run([*script, "--csv", str(out)], check=True, capture_output=True, timeout=60)
+    rows = [
+        (r["overrides"], r["greedy_return"], r["best_baseline"], r["best_baseline_return"])
+        for r in csv.DictReader(out.open())
+    ]
+    assert rows == [
+        ("seed=0", "4.0", "always", "2.5"),
+        ("seed=1", "3.0", "", ""),
+        ("seed=2", "", "", ""),
+    ]
+
+
 def test_atp_baselines_script_tables_each_policy(tmp_path):
     """The baseline script on a small ATP preset: one row per policy, shocks as scheduled, on
     the seeds from --first-seed."""
