@@ -263,9 +263,12 @@ class Dojo:
             if bar is not None:
                 bar.close()
         last = self.history[-1]["iteration"] if self.history else None
-        if self._stop_reason is None and last != self.counters.iteration:
-            self.evaluate()  # the final greedy policy
-        if self.checkpoints is not None and self._saved_iteration != self.counters.iteration:
+        final = self._stop_reason is None and last != self.counters.iteration
+        if final:
+            self.evaluate()  # the final greedy policy, kept in the last checkpoint too
+        if self.checkpoints is not None and (
+            final or self._saved_iteration != self.counters.iteration
+        ):
             self.save_checkpoint()
         if self._stop_reason is not None:
             log.warning("stopped at iteration %d: %s", self.counters.iteration, self._stop_reason)

@@ -150,6 +150,38 @@ def test_training_goes_on_from_a_training_seed_after_an_evaluation():
     assert env.rng.bit_generator.seed_seq.entropy == c.train_seed(3, 2)
 
 
+def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
+    """A run whose last iteration is checkpointed in the loop (4, every 2) but not evaluated
+    there (every 3): the final evaluation's row is in the last checkpoint as well as in
+    ``eval.csv``, so a resumed run keeps it."""
+    sys.path.insert(0, str(TOY.parent))
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl import config as c
+    from physicsrl.builders import make_q_network
+    from physicsrl.checkpoint import Checkpoints, read
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+
+    coordinator = Coordinator()
+    env = ToyChainEnv(coordinator, length=3)
+    config = c.TrainConfig(
+        collector=c.CollectorConfig(frames_per_batch=8),
+        eval=c.Evaluation(every=3, seeds=c.held_out_seeds(2)),
+        checkpoint=c.CheckpointConfig(every=2),
+        logger=c.LoggerConfig(progress=False, tensorboard=False),
+    )
+    with coordinator:
+        dojo = Dojo(make_q_network(env, config.agent.network), env, config, log_dir=tmp_path)
+        dojo.train(4)
+    checkpoints = Checkpoints(tmp_path / "checkpoints", keep=3)
+    assert [p.name for p in checkpoints.paths()] == [checkpoint_name(i) for i in (2, 4)]
+    stored = read(checkpoints.latest(), ["history", "counters"])
+    assert [row["iteration"] for row in stored["history"]] == [3, 4]
+    assert "evaluation" in stored["counters"]["time_s"]
+    assert [r["iteration"] for r in csv.DictReader((tmp_path / "eval.csv").open())] == ["3", "4"]
+
+
 def test_charge_actions_subtracts_each_actions_cost_from_its_reward():
     from tensordict import TensorDict
 
