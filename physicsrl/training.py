@@ -140,22 +140,23 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
             logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
         )
         logging.getLogger().addHandler(handler)
-        (run_dir / RESUMED).write_text(
-            f"this command resumed {log_dir} from {resume.name}: its checkpoints, events, "
-            f"evaluations and summary are written there\n"
-        )
     dojo = make_dojo(config, env, coordinator, log_dir)
     if resume is not None:
         extra = dojo.load_checkpoint(resume)
         check_environments(extra.get("environments", 1), n_environments(env))
         warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
+        (run_dir / RESUMED).write_text(
+            f"this command resumed {log_dir} from {resume.name}: its checkpoints, events, "
+            f"evaluations and summary are written there\n"
+        )
     started = time.perf_counter()
     try:
         summary = dojo.train(config.iterations)
     except NonFiniteTraining as error:
         print(f"error: {error}", file=sys.stderr, flush=True)
         raise SystemExit(1) from None
-    summary["wall_s"] = time.perf_counter() - started
+    summary["wall_s"] = time.perf_counter() - started  # this command's (total_s: the run's)
+    summary["resumed_from"] = None if resume is None else str(resume)
     summary["ranks"], summary["environments"] = ranks, n_environments(env)  # for core-hours
     table = []
     if dojo.history:  # a stop request skips the baselines: it should end quickly
@@ -207,9 +208,12 @@ def warn_differences(old: dict, new: dict, prefix: str = "") -> None:
 
 def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task | None) -> str:
     times = ", ".join(f"{k} {v:.1f}s" for k, v in summary["time_s"].items())
+    took = f"{summary['total_s']:.1f}s"  # the run's, resumes included, as the times below
+    if summary["resumed_from"]:
+        took += f" ({summary['wall_s']:.1f}s of them since resuming)"
     lines = [
         f"trained {summary['iteration']} iterations, {summary['frames']} env steps, "
-        f"{summary['episodes']} episodes, {summary['updates']} updates in {summary['wall_s']:.1f}s "
+        f"{summary['episodes']} episodes, {summary['updates']} updates in {took} "
         f"({summary['env_steps_per_s']:.1f} env steps/s while simulating)",
         f"time: {times}",
     ]
@@ -223,7 +227,10 @@ def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task |
     if summary.get("stopped"):
         lines.append(f"stopped early: {summary['stopped']} (resume with resume={log_dir})")
     if table:
-        lines.append("held-out seeds, mean per episode:")
+        evaluated = summary["eval"]["iteration"]
+        lines.append(
+            f"held-out seeds, mean per episode (the greedy policy of iteration {evaluated}):"
+        )
         lines.append(format_table(rounded(table)))
         if task is not None:
             lines.extend(task.scores({row["policy"]: row["return"] for row in table}))

@@ -97,6 +97,21 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     assert "Traceback" not in result.stdout
 
 
+def test_a_resume_with_another_number_of_environments_is_one_line(tmp_path):
+    """A run of 1 environment resumed by a job of 2 (``mpi.ranks=2``): status 2, one line
+    naming both numbers, and the refused command's directory says it resumed nothing."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    assert run([TRAIN, *SHORT, f"hydra.run.dir={first}"], tmp_path).returncode == 0
+    command = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"resume={first}"]
+    result = run([*command, f"hydra.run.dir={second}"], tmp_path)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stderr.splitlines() == [
+        "error: the checkpoint's run had 1 environment(s), this job has 2 (mpi.ranks / "
+        "mpi.ranks_per_env): resume with the same number"
+    ]
+    assert not (second / "resumed.txt").exists()
+
+
 def test_a_checkpoint_directory_that_cannot_be_written_is_one_line_at_the_start(tmp_path):
     """``checkpoints`` taken by a regular file (unwritable even for root): under 2 ranks, one
     line naming it, exit status 2, before any environment is built or iteration run."""
