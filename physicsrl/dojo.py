@@ -272,6 +272,17 @@ class Dojo:
             self.save_checkpoint()
         if self._stop_reason is not None:
             log.warning("stopped at iteration %d: %s", self.counters.iteration, self._stop_reason)
+        if (
+            self.counters.frames
+            and not self.counters.episodes
+            and config.collector.reset_at_each_iter
+        ):
+            log.warning(
+                "no training episode ended: each batch of %d frames restarts every environment's "
+                "episode (collector.reset_at_each_iter); set collector.frames_per_env to at "
+                "least an episode's length",
+                self.frames_per_batch,
+            )
         if self.writer is not None:
             self.writer.flush()
         return self.summary()

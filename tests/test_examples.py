@@ -104,6 +104,8 @@ def test_a_task_outside_the_package_trains_and_evaluates_from_the_command_line(t
     )
     assert result.returncode == 0, result.stderr
     assert "heater on" in result.stdout and "heating" in result.stdout
+    # 2 environments x 10 of the default 20 frames per batch never end its 20-step episodes
+    assert "no training episode ended" in result.stdout  # +experiment=thermostat sets 20 each
     evaluate = [str(bin_dir / "physicsrl-eval"), f"run={run}", "seeds=2", "gif=false"]
     evaluate += ["curve=false", f"hydra.run.dir={tmp_path / 'eval'}"]
     result = subprocess.run(evaluate, capture_output=True, text=True, timeout=300, cwd=ROOT)
