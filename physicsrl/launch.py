@@ -150,11 +150,20 @@ def check_layout(ranks_per_env: int, world_size: int) -> None:
         )
 
 
-def check_backend(backend: str | None, ranks_per_env: int) -> None:
+def check_backend(backend: str | None, ranks_per_env: int, device: str | None = None) -> None:
     """ValueError in one line if ``env.model.backend`` is ``torch`` with groups of more than
-    one rank: each group's replicas (``env.replicas``) run on one rank."""
+    one rank (each group's replicas, ``env.replicas``, run on one rank), or on ``device`` cuda
+    where torch finds no CUDA device."""
     if backend == "torch" and ranks_per_env != 1:
         raise ValueError(
             f"mpi.ranks_per_env={ranks_per_env}: env.model.backend=torch runs each group's "
             "env.replicas on one rank (mpi.ranks_per_env=1)"
         )
+    if backend == "torch" and device == "cuda":
+        import torch  # seconds: only for a run on the GPU
+
+        if not torch.cuda.is_available():
+            raise ValueError(
+                "env.model.device=cuda: torch finds no CUDA device on this machine "
+                "(env.model.device=cpu runs the replicas on its CPU)"
+            )

@@ -243,3 +243,21 @@ def test_a_vanished_follower_under_the_watchdog_is_named(ranks):
     assert result.returncode != 0
     [line] = [line for line in result.stderr.splitlines() if line.startswith("watchdog:")]
     assert "not finished after 1 s on ranks [0, " in line and f"{ranks - 1}]" in line, line
+
+
+def test_a_cuda_run_is_refused_in_one_line_where_torch_finds_no_cuda_device(tmp_path):
+    """``env.model.device=cuda`` (the GPU presets) is checked before anything is built: one line
+    where torch finds no CUDA device, nothing where it does (as on the GPU machines)."""
+    import torch
+
+    from physicsrl.launch import check_backend
+
+    if torch.cuda.is_available():
+        check_backend("torch", 1, "cuda")
+        return
+    with pytest.raises(ValueError, match="env.model.device=cuda: torch finds no CUDA device"):
+        check_backend("torch", 1, "cuda")
+    command = [str(BIN / "physicsrl-train"), "+experiment=atp_resolved_timing_batched"]
+    result = run([*command, "env.mesh.cells=12", "env.replicas=2"], cwd=tmp_path, timeout=120)
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
+    assert "torch finds no CUDA device" in result.stderr and not list(tmp_path.iterdir())

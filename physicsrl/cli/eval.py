@@ -85,7 +85,8 @@ def evaluate(cfg) -> None:
     config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
     try:  # as physicsrl-train checks its config, before anything is built
         train_cfg = run_config(config, list(cfg.overrides))
-        check_backend(OmegaConf.select(train_cfg, "env.model.backend"), cfg.mpi.ranks_per_env)
+        model = OmegaConf.select(train_cfg, "env.model") or {}
+        check_backend(model.get("backend"), cfg.mpi.ranks_per_env, model.get("device"))
         check_run(train_cfg)
     except ValueError as error:
         refuse_config(error)

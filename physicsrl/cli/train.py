@@ -17,13 +17,14 @@ from physicsrl.cli import command
 
 def check_task(cfg) -> None:
     """The layout of environments over the job's ranks and the backend's (a group's replicas
-    run on one rank), then :func:`check_run`."""
+    run on one rank, a CUDA device is there), then :func:`check_run`."""
     from omegaconf import OmegaConf
 
     from physicsrl.launch import check_backend, check_layout, launched_size
 
     check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
-    check_backend(OmegaConf.select(cfg, "env.model.backend"), cfg.mpi.ranks_per_env)
+    model = OmegaConf.select(cfg, "env.model") or {}
+    check_backend(model.get("backend"), cfg.mpi.ranks_per_env, model.get("device"))
     check_run(cfg)
 
 
