@@ -40,11 +40,16 @@ def train_seed(seed: int, iteration: int) -> int:
     return seed * SEEDS_PER_RUN + iteration
 
 
+def training_seeds_among(seed: int, iterations: int, seeds: list[int]) -> list[int]:
+    """Those of ``seeds`` that seed a training batch 0..iterations-1 of a run with ``seed``."""
+    first, last = train_seed(seed, 0), train_seed(seed, max(iterations - 1, 0))
+    return [s for s in seeds if first <= s <= last]
+
+
 def check_seeds(seed: int, iterations: int, eval_seeds: list[int]) -> None:
     """ValueError if one of ``eval_seeds`` is also the seed of a training batch 0..iterations-1
     of a run with ``seed``."""
-    first, last = train_seed(seed, 0), train_seed(seed, max(iterations - 1, 0))
-    clash = [s for s in eval_seeds if first <= s <= last]
+    clash = training_seeds_among(seed, iterations, eval_seeds)
     if clash:
         raise ValueError(f"eval.seeds {clash[:3]} are also training seeds (seed * 1e6 + i)")
 

@@ -538,6 +538,7 @@ def test_eval_command_tables_a_trained_run(reference, tmp_path):
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.count("greedy DQN") == 1
     assert f"{checkpoint_name(ITERATIONS)} (iteration {ITERATIONS}" in result.stdout
+    assert "10 held-out seeds, mean per episode" in result.stdout
     for name in ("eval.csv", "eval_summary.csv", "learning_curve.png"):
         assert (out / name).exists(), name
     rows = list(csv.DictReader((out / "eval.csv").open()))
@@ -546,6 +547,13 @@ def test_eval_command_tables_a_trained_run(reference, tmp_path):
     trained = json.loads((run_dir / "summary.json").read_text())["summary"]["eval"]
     assert trained["iteration"] == ITERATIONS
     assert float(means["greedy DQN"]["return"]) == pytest.approx(trained["return"])
+    # seed 1 seeded the run's training batch 1: the table is not called held out
+    again = [str(BIN / "physicsrl-eval"), f"run={run_dir}", "seeds=[1,1000000000]"]
+    again += ["baselines=false", "gif=false", "curve=false", f"hydra.run.dir={tmp_path / 'x'}"]
+    result = run(again, tmp_path, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "warning: seeds [1] seeded this run's training batches" in result.stdout
+    assert "2 seeds, mean per episode" in result.stdout
 
 
 @pytest.mark.parametrize(

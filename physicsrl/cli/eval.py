@@ -128,7 +128,7 @@ def field_recorder(env, coordinator, path: Path):
 
 def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=None) -> None:
     from physicsrl import learning_curve
-    from physicsrl.config import held_out_seeds
+    from physicsrl.config import held_out_seeds, is_held_out, training_seeds_among
     from physicsrl.envs.env import PhysicsEnv
     from physicsrl.envs.groups import GroupedEnv
     from physicsrl.evaluation import compare
@@ -148,9 +148,14 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     directory = output_dir()
     write_csv(directory / "eval.csv", per_seed)
     write_csv(directory / "eval_summary.csv", means)
+    iterations = state["counters"]["iteration"]
+    trained = training_seeds_among(train_cfg.seed, iterations, seeds)
+    if trained:
+        print(f"warning: seeds {trained[:3]} seeded this run's training batches (seed * 1e6 + i)")
+    kind = "held-out seeds" if all(map(is_held_out, seeds)) and not trained else "seeds"
     print(
-        f"checkpoint {path} (iteration {state['counters']['iteration']}, "
-        f"{state['counters']['frames']} env steps); {len(seeds)} held-out seeds, mean per episode:"
+        f"checkpoint {path} (iteration {iterations}, {state['counters']['frames']} env steps); "
+        f"{len(seeds)} {kind}, mean per episode:"
     )
     print(format_table(rounded(means)))
     print(f"results: {directory / 'eval_summary.csv'} (per seed: eval.csv)")
