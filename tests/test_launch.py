@@ -1,6 +1,8 @@
 """Console entry points: MPI self-launch, one run directory, leader-only files, wheel install."""
 
+import json
 import os
+import shlex
 import subprocess
 import sys
 import sysconfig
@@ -50,6 +52,8 @@ def test_ranks_share_one_run_directory_and_only_the_leader_writes(tmp_path, laun
         "ping.json",
     ]
     assert len(list(tmp_path.rglob(".hydra"))) == 1
+    recorded = json.loads((directory / "ping.json").read_text())["command"]
+    assert recorded == shlex.join(["physicsrl-bench", "ping", *launch[launch.index("ping") + 1 :]])
 
 
 def test_mismatched_rank_request_is_a_one_line_error(tmp_path):

@@ -70,13 +70,16 @@ def check(cfg, name: str) -> None:
 
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
-    """Print the table and goals, and write them beside the command line (leader only)."""
+    """Print the table and goals, and write them beside the command line that reruns this job
+    (a sweep's job: its own values) (leader only)."""
+    from hydra.core.hydra_config import HydraConfig
+
     print(format_table(rows))
     for text, met in goals:
         print(f"goal {'met' if met else 'MISSED'}: {text}")
     directory = output_dir()
     write_csv(directory / f"{name}.csv", rows)
-    command = shlex.join(["physicsrl-bench", name, *sys.argv[1:]])
+    command = shlex.join(["physicsrl-bench", name, *HydraConfig.get().overrides.task])
     record = {"command": command, "rows": rows, "goals": [{"goal": t, "met": m} for t, m in goals]}
     (directory / f"{name}.json").write_text(json.dumps(record, indent=2))
     print(f"results: {directory / (name + '.csv')}")
