@@ -126,16 +126,8 @@ def test_training_goes_on_from_a_training_seed_after_an_evaluation():
     reseeds the env with held-out seeds; training then goes on from the generator of
     ``train_seed(seed, iteration)``, never from a held-out one (a task with a pool of training
     draws would otherwise draw held-out episodes, or never the pool)."""
-    sys.path.insert(0, str(TOY.parent))
-    from train_toy_env import ToyChainEnv
-
     from physicsrl import config as c
-    from physicsrl.builders import make_q_network
-    from physicsrl.coordinated import Coordinator
-    from physicsrl.dojo import Dojo
 
-    coordinator = Coordinator()
-    env = ToyChainEnv(coordinator, length=3)
     config = c.TrainConfig(
         seed=3,
         collector=c.CollectorConfig(frames_per_batch=8, reset_at_each_iter=False),
@@ -143,37 +135,42 @@ def test_training_goes_on_from_a_training_seed_after_an_evaluation():
         eval=c.Evaluation(every=2, seeds=c.held_out_seeds(2)),
         logger=c.LoggerConfig(progress=False),
     )
-    with coordinator:
-        dojo = Dojo(make_q_network(env, config.agent.network), env, config)
-        dojo.train(2)
+    dojo = train_toy_chain(config, 2)
     assert [row["iteration"] for row in dojo.history] == [2]
-    assert env.rng.bit_generator.seed_seq.entropy == c.train_seed(3, 2)
+    assert dojo.env.rng.bit_generator.seed_seq.entropy == c.train_seed(3, 2)
+
+
+def train_toy_chain(config, iterations: int, log_dir: Path | None = None):
+    """The Dojo of ``config`` trained ``iterations`` on the toy chain of length 3 (one rank)."""
+    sys.path.insert(0, str(TOY.parent))
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl.builders import make_q_network
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+
+    coordinator = Coordinator()
+    env = ToyChainEnv(coordinator, length=3)
+    with coordinator:
+        dojo = Dojo(make_q_network(env, config.agent.network), env, config, log_dir=log_dir)
+        dojo.train(iterations)
+    return dojo
 
 
 def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
     """A run whose last iteration is checkpointed in the loop (4, every 2) but not evaluated
     there (every 3): the final evaluation's row is in the last checkpoint as well as in
     ``eval.csv``, so a resumed run keeps it."""
-    sys.path.insert(0, str(TOY.parent))
-    from train_toy_env import ToyChainEnv
-
     from physicsrl import config as c
-    from physicsrl.builders import make_q_network
     from physicsrl.checkpoint import Checkpoints, read
-    from physicsrl.coordinated import Coordinator
-    from physicsrl.dojo import Dojo
 
-    coordinator = Coordinator()
-    env = ToyChainEnv(coordinator, length=3)
     config = c.TrainConfig(
         collector=c.CollectorConfig(frames_per_batch=8),
         eval=c.Evaluation(every=3, seeds=c.held_out_seeds(2)),
         checkpoint=c.CheckpointConfig(every=2),
         logger=c.LoggerConfig(progress=False, tensorboard=False),
     )
-    with coordinator:
-        dojo = Dojo(make_q_network(env, config.agent.network), env, config, log_dir=tmp_path)
-        dojo.train(4)
+    train_toy_chain(config, 4, log_dir=tmp_path)
     checkpoints = Checkpoints(tmp_path / "checkpoints", keep=3)
     assert [p.name for p in checkpoints.paths()] == [checkpoint_name(i) for i in (2, 4)]
     stored = read(checkpoints.latest(), ["history", "counters"])
