@@ -289,7 +289,8 @@ class ATPConfig:
                 f"replicas must be 1 with model.backend=petsc (replicas need model.backend="
                 f"torch; more PETSc environments come from mpi.ranks), got {self.replicas!r}"
             )
-        step, model = self.model.dt / self.model.substeps, self.model
+        model = self.model
+        step = model.dt / model.substeps
         if model.scheme == "explicit" and step > (limit := self.mesh.explicit_limit(model.D)):
             raise ValueError(
                 f"model.dt / model.substeps = {step:g} exceeds the explicit scheme's stability "
