@@ -54,8 +54,9 @@ def truncate(path, fraction: float = 0.5) -> None:
 def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_run(tmp_path):
     """The newest of 3 checkpoints truncated: one warning naming it, the run resumes from the
     one before in its own directory and reproduces the lost checkpoint bit for bit; the
-    resuming command's directory holds only its config, its log and ``resumed.txt``. All three
-    truncated: one line naming them, exit status 2."""
+    resuming command's directory holds only its config, its log and ``resumed.txt``. A resume
+    by a job of 2 environments (the run had 1): one line naming both, no ``resumed.txt``. All
+    three truncated: one line naming them, exit status 2."""
     first, second = tmp_path / "first", tmp_path / "second"
     result = run([TRAIN, *SHORT, f"hydra.run.dir={first}"], tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -83,6 +84,15 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     assert sorted(p.name for p in second.iterdir()) == [".hydra", "resumed.txt", "train.log"]
     assert str(first) in (second / "resumed.txt").read_text()
 
+    mismatched = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"resume={first}"]
+    result = run([*mismatched, f"hydra.run.dir={tmp_path / 'two'}"], tmp_path)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stderr.splitlines() == [
+        "error: the checkpoint's run had 1 environment(s), this job has 2 (mpi.ranks / "
+        "mpi.ranks_per_env): resume with the same number"
+    ]
+    assert not (tmp_path / "two" / "resumed.txt").exists()
+
     for path in checkpoints.paths():
         truncate(path, 0.9)
     result = run(
@@ -95,21 +105,6 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
         + ", ".join(checkpoint_name(i) for i in (6, 4, 2))
     ], result.stdout + result.stderr
     assert "Traceback" not in result.stdout
-
-
-def test_a_resume_with_another_number_of_environments_is_one_line(tmp_path):
-    """A run of 1 environment resumed by a job of 2 (``mpi.ranks=2``): status 2, one line
-    naming both numbers, and the refused command's directory says it resumed nothing."""
-    first, second = tmp_path / "first", tmp_path / "second"
-    assert run([TRAIN, *SHORT, f"hydra.run.dir={first}"], tmp_path).returncode == 0
-    command = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"resume={first}"]
-    result = run([*command, f"hydra.run.dir={second}"], tmp_path)
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert result.stderr.splitlines() == [
-        "error: the checkpoint's run had 1 environment(s), this job has 2 (mpi.ranks / "
-        "mpi.ranks_per_env): resume with the same number"
-    ]
-    assert not (second / "resumed.txt").exists()
 
 
 def test_a_checkpoint_directory_that_cannot_be_written_is_one_line_at_the_start(tmp_path):

@@ -106,11 +106,14 @@ def test_a_task_outside_the_package_trains_and_evaluates_from_the_command_line(t
     assert "heater on" in result.stdout and "heating" in result.stdout
     # 2 environments x 10 of the default 20 frames per batch never end its 20-step episodes
     assert "no training episode ended" in result.stdout  # +experiment=thermostat sets 20 each
-    evaluate = [str(bin_dir / "physicsrl-eval"), f"run={run}", "seeds=2", "gif=false"]
-    evaluate += ["curve=false", f"hydra.run.dir={tmp_path / 'eval'}"]
+    # seed 1 seeded the run's training batch 1: the table does not call the seeds held out
+    evaluate = [str(bin_dir / "physicsrl-eval"), f"run={run}", "seeds=[1,1000000000]"]
+    evaluate += ["gif=false", "curve=false", f"hydra.run.dir={tmp_path / 'eval'}"]
     result = subprocess.run(evaluate, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     assert "greedy DQN" in result.stdout and "heater off" in result.stdout
+    assert "warning: seeds [1] seeded this run's training batches" in result.stdout
+    assert "2 seeds, mean per episode" in result.stdout
 
 
 # a `physicsrl-train` or `physicsrl-bench` command written in a document or a config comment:
