@@ -22,11 +22,11 @@ setup: $(STAMP)  ## create .venv (Python 3.12) and install physicsrl editable wi
 train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 	$(BIN)/physicsrl-train mpi.ranks=2
 
-test: setup  ## run the test suite (unit and MPI tests; the resolved rows: test-resolved)
+test: setup  ## run the test suite (unit and MPI tests; the slowest results rows: test-resolved)
 	$(BIN)/python -m pytest
 
-test-resolved: setup  ## the rows of the resolved (1000 x 1000) results tables, on 2 ranks (~10 min)
-	$(BIN)/python -m pytest -m resolved
+test-resolved: setup  ## the results rows that take minutes on 2 ranks: 1000 x 1000, the timing agent's 20 draws (~12 min)
+	$(BIN)/python -m pytest -m 'resolved or slow'
 
 SLURM := tests/slurm/local_slurm.sh
 test-slurm: setup  ## the Slurm launcher on a local single-node Slurm (installed where possible, else skipped)

@@ -527,7 +527,13 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
     [
         ("atp_agent.torchrl", "atp_agent_eval.csv", 1, False),
         ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", 1, False),
-        ("atp_timing_agent.torchrl", "atp_timing_agent_eval.csv", 20, True),
+        pytest.param(
+            "atp_timing_agent.torchrl",
+            "atp_timing_agent_eval.csv",
+            20,
+            True,
+            marks=pytest.mark.slow,  # ~100 s: make test-resolved
+        ),
         pytest.param(
             "atp_resolved_timing_agent.torchrl",
             "atp_resolved_timing_agent_eval.csv",
@@ -550,9 +556,9 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     1000000000 alone, 413 in the batch). Its compiled float32 steps round as the CPU's vector
     instructions do: the table was made with AVX2 (AMD EPYC), where every row must match. With
     AVX-512 (an Intel Xeon) 2 of the 20 rows differed: draw 06 failed with one shock instead of
-    two, draw 12 ended later (431 against 442); there up to 3 rows may differ. The resolved
-    agent's first row (1000 x 1000, with its induction: ~5 min on 2 ranks) runs with
-    ``make test-resolved``, outside ``make test``."""
+    two, draw 12 ended later (431 against 442); there up to 3 rows may differ. The timing
+    agent's 20 draws (~100 s) and the resolved agent's first row (1000 x 1000, with its
+    induction: ~5 min on 2 ranks) run with ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
