@@ -48,7 +48,7 @@ waits so far).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import ClassVar
 
 import numpy as np
@@ -116,8 +116,12 @@ class MSModel:
         choice("dtype", self.dtype, DTYPES)
         if not isinstance(self.compile, bool):
             raise ValueError(f"compile must be true or false, got {self.compile!r}")
-        torch_only = {"device": "cpu", "dtype": DTYPES[0], "compile": False}  # and their defaults
-        chosen = [f"{k}={getattr(self, k)}" for k, v in torch_only.items() if getattr(self, k) != v]
+        torch_only = [f for f in fields(self) if f.name in ("device", "dtype", "compile")]
+        chosen = [
+            f"{f.name}={getattr(self, f.name)}"
+            for f in torch_only
+            if getattr(self, f.name) != f.default
+        ]
         if self.backend != "torch" and chosen:
             raise ValueError(
                 f"{' and '.join(chosen)} need{'s' if len(chosen) == 1 else ''} backend=torch "
