@@ -37,14 +37,17 @@ def induction(c):
 @pytest.mark.parametrize("scheme", ["implicit", "explicit"])
 def test_replicas_equal_the_dolfinx_path(scheme, cell):
     """Three replicas with different initial gates and stimuli, 150 steps with the current then
-    60 without, on 24 x 24 cells of [-50, 50]^2: each replica equals its own run of
+    60 without, on 24 x 18 cells of [-50, 50] x [-50, 25] (a grid need not be square for the
+    structured paths): each replica equals its own run of
     MonodomainMitchellSchaeffer on the same draws. Implicit: the PETSc path (CG + ICC, rtol
     1e-10) against the direct solve (quadrilaterals: a structured grid) or the batched CG +
     Jacobi (triangles; rtol 1e-10), so they agree to the tolerance of the PETSc path's own 1
     vs 2 rank tests, 1e-6 (u is O(1); measured: 1.1e-7); explicit: the compiled C pass, to
     round-off (1e-12), with the 9-point stencil on quadrilaterals and the CSR product on
     triangles."""
-    domain = SquareMesh(24, 50.0, cell).create(MPI.COMM_SELF)
+    domain = mesh.create_rectangle(
+        MPI.COMM_SELF, [[-50, -50], [50, 25]], [24, 18], getattr(mesh.CellType, cell)
+    )
     batched = BatchedMonodomain(domain, **{**MODEL, "scheme": scheme}, device="cpu")
     assert (batched._grid is not None) == (cell == "quadrilateral")
     centres = (-8.0, 0.0, 6.5)
@@ -130,6 +133,35 @@ def test_explicit_refuses_an_unstable_step():
     BatchedMonodomain(
         domain, **{**MODEL, "scheme": "explicit", "dt": 100.0, "substeps": 2}, device="cpu"
     )
+
+
+def test_bad_arguments_are_refused_naming_them():
+    """Settings and the arguments of a step: one :class:`InvalidValue` naming the value, and
+    nothing advanced."""
+    domain = SquareMesh(4, 50.0, "quadrilateral").create(MPI.COMM_SELF)
+    for settings, name in [
+        ({"threads": 0}, "threads"),
+        ({"rtol": -1.0}, "rtol"),
+        ({"dtype": "bogus"}, "dtype"),
+        ({"scheme": "explicit", "substeps": True}, "substeps"),
+    ]:
+        with pytest.raises(InvalidValue, match=name):
+            BatchedMonodomain(domain, **{**MODEL, **settings}, device="cpu")
+    batched = BatchedMonodomain(domain, **MODEL, device="cpu")
+    u = torch.zeros(2, batched.num_dofs, dtype=torch.float64)
+    w = torch.ones_like(u)
+    with pytest.raises(InvalidValue, match="T must"):
+        batched.steps(-1.0)
+    for arguments, name in [
+        ((u, w, None, -3), "steps"),
+        ((u, w, None, 2.5), "steps"),
+        ((u[:, :-1], w[:, :-1], None, 1), "u and w"),
+        ((u.float(), w.float(), None, 1), "u and w"),
+        ((u, w, torch.zeros(2, 5), 1), "current"),
+    ]:
+        with pytest.raises(InvalidValue, match=name):
+            batched.advance(*arguments)
+    assert batched.replica_steps == batched.batch_steps == 0
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")

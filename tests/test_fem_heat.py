@@ -103,6 +103,22 @@ def test_reset_calls_the_hook_and_restarts():
         assert not np.allclose(env.u_n().x.array, 7.0)
 
 
+def test_petsc_options_that_no_solver_part_reads_or_petsc_rejects_are_refused():
+    """A misspelt key is refused when the solver is first set up (PETSc reads the inner
+    solvers' options only then), naming it; a value PETSc rejects, at construction; a good
+    option takes effect."""
+    domain = mesh.create_unit_square(MPI.COMM_WORLD, 4, 4)
+    env = HeatEnvironment(Coordinator(), domain, petsc_options={"ksp_rtoll": 1e-2})
+    with env.coordinator, pytest.raises(ValueError, match=r"reads \['ksp_rtoll'\]"):
+        env.advance_time(0.01)
+    with pytest.raises(ValueError, match="petsc_options: PETSc refused .*'nonsense'"):
+        HeatEnvironment(Coordinator(), domain, petsc_options={"ksp_type": "nonsense"})
+    env = HeatEnvironment(Coordinator(), domain, petsc_options={"ksp_rtol": 1e-3})
+    with env.coordinator:
+        env.advance_time(0.01)
+    assert env.problem._ksp.getTolerances()[0] == 1e-3
+
+
 def test_time_problem_setters_take_effect_and_lu_agrees():
     """du/dt = -c u, uniform: implicit Euler gives u_n = u_0 / (1 + c dt)^n exactly. Changing
     dt and then the bilinear form (c = 1 -> 3) mid-run changes the factor from the next step;

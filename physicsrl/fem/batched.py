@@ -70,11 +70,14 @@ from dolfinx import fem, mesh
 from physicsrl.fem.errors import InvalidValue, SimulationDiverged
 from physicsrl.fem.explicit import lumped_mass, stability_limit
 from physicsrl.fem.grid import grid_of
-from physicsrl.fem.monodomain import SCHEMES
+from physicsrl.fem.monodomain import SCHEMES, scheme_substeps
 from physicsrl.fem.quadrature import CellQuadrature
 from physicsrl.fem.resolution import resolution
 from physicsrl.fem.strips import square_stencil
-from physicsrl.fem.values import finite, positive
+from physicsrl.fem.values import finite, integer, nonnegative, positive
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+"""The dtypes of the state, by name."""
 
 CG_RTOL = 1e-10
 """Relative tolerance of the batched CG (that of :data:`~physicsrl.fem.DEFAULT_PETSC_OPTIONS`)."""
@@ -120,8 +123,8 @@ class BatchedMonodomain:
     scheme, substeps:
         ``"implicit"`` or ``"explicit"`` with ``substeps`` sub-steps per dt (explicit only).
     device, dtype:
-        Where the tensors live (default :func:`default_device`) and their precision (a torch
-        dtype or its name; default float64 on the CPU, float32 on CUDA).
+        Where the tensors live (default :func:`default_device`) and their precision (float32
+        or float64, a torch dtype or its name; default float64 on the CPU, float32 on CUDA).
     rtol:
         CG tolerance of the implicit scheme (on meshes that are not structured grids).
     compiled:
@@ -167,24 +170,27 @@ class BatchedMonodomain:
     ):
         if domain.comm.size != 1:
             raise InvalidValue("BatchedMonodomain: the mesh must live on MPI.COMM_SELF")
-        if scheme not in SCHEMES:
-            raise InvalidValue(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-        if not isinstance(substeps, int) or substeps < 1 or (scheme != "explicit" and substeps > 1):
-            raise InvalidValue(
-                f"substeps must be an integer >= 1 (1 unless scheme='explicit'), got {substeps!r}"
-            )
+        substeps = scheme_substeps(scheme, substeps)
         rates = {"tau_in": tau_in, "tau_out": tau_out, "tau_open": tau_open}
-        for name, value in {**rates, "tau_close": tau_close, "D": D, "dt": dt}.items():
+        for name, value in {
+            **rates,
+            "tau_close": tau_close,
+            "D": D,
+            "dt": dt,
+            "rtol": rtol,
+        }.items():
             positive(name, value)
         self.u_gate = finite("u_gate", u_gate)
         self.device = torch.device(default_device() if device is None else device)
-        dtype = getattr(torch, dtype) if isinstance(dtype, str) else dtype
+        dtype = DTYPES.get(dtype, dtype) if isinstance(dtype, str) else dtype
+        if dtype not in (None, *DTYPES.values()):
+            raise InvalidValue(f"dtype must be float32 or float64, got {dtype!r}")
         self.dtype = dtype or (torch.float32 if self.device.type == "cuda" else torch.float64)
         self.scheme, self.substeps, self.dt = scheme, substeps, float(dt)
         self.iterations = 0
         self.replica_steps = 0  # steps of dt advanced, summed over the replicas
         self.batch_steps = 0  # steps of dt advanced, each of one batch of replicas
-        self.threads = int(threads)
+        self.threads = integer("threads", threads)
         self.resolution = resolution(domain, D, tau_in, scheme)
         V = self.V = fem.functionspace(domain, ("Lagrange", 1))
         Q = fem.functionspace(domain, ("DG", 0))
@@ -276,8 +282,8 @@ class BatchedMonodomain:
 
     # stepping -----------------------------------------------------------------------------
     def steps(self, T: float) -> int:
-        """The number of steps of dt in T (rounded: 50 / 0.03 is not whole)."""
-        return round(T / self.dt)
+        """The number of steps of dt in T >= 0 (rounded: 50 / 0.03 is not whole)."""
+        return round(nonnegative("T", T) / self.dt)
 
     def advance(self, u: torch.Tensor, w: torch.Tensor, current, steps: int) -> torch.Tensor:
         """Run ``steps`` steps of dt on ``u``, ``w`` (B, n), in place, with the current
@@ -285,6 +291,17 @@ class BatchedMonodomain:
         finite, (B,) bool (a replica that is not does not stop the others). Inside, the
         replicas are columns ((n, B): sparse products and gathers then move contiguous rows of
         B values), or, for the explicit stencil, (B, n_y, n_x) grids."""
+        steps = integer("steps", steps, low=0)
+        wanted = ((len(u), self.num_dofs), self.dtype)
+        if any((tuple(x.shape), x.dtype) != wanted for x in (u, w)):
+            raise InvalidValue(
+                f"u and w must be {wanted[1]} tensors of shape (B, {self.num_dofs}), got "
+                f"{u.dtype} {tuple(u.shape)} and {w.dtype} {tuple(w.shape)}"
+            )
+        if current is not None and current.shape != (len(u), self.num_cells):
+            raise InvalidValue(
+                f"current must have the shape {(len(u), self.num_cells)}, got {current.shape}"
+            )
         self.replica_steps += len(u) * steps
         self.batch_steps += steps
         with self._threads():

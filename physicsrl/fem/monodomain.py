@@ -75,10 +75,22 @@ from physicsrl.fem.kernels import pointer
 from physicsrl.fem.quadrature import CellQuadrature
 from physicsrl.fem.resolution import resolution
 from physicsrl.fem.time_problem import TimeProblem
-from physicsrl.fem.values import assign, finite, positive
+from physicsrl.fem.values import assign, finite, integer, positive
 
 SCHEMES = ("implicit", "explicit")
 """The time schemes of :class:`MonodomainMitchellSchaeffer` (the first is the default)."""
+
+
+def scheme_substeps(scheme: str, substeps) -> int:
+    """``substeps`` as an int, or :class:`InvalidValue` unless ``scheme`` is one of
+    :data:`SCHEMES` and ``substeps`` an integer >= 1, 1 unless the scheme is explicit."""
+    if scheme not in SCHEMES:
+        raise InvalidValue(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+    substeps = integer("substeps", substeps)
+    if scheme != "explicit" and substeps > 1:
+        raise InvalidValue(f"substeps must be 1 unless scheme='explicit', got {substeps}")
+    return substeps
+
 
 PARALLEL_PETSC_OPTIONS = {"pc_type": "jacobi"}
 """Solver options on more than one rank, updating
@@ -116,7 +128,8 @@ class MonodomainMitchellSchaeffer(Coordinated):
     dt:
         Time step (> 0).
     quadrature_degree:
-        Quadrature degree of the right-hand side (default: 5 x the element degree, exact).
+        Quadrature degree of the right-hand side, an integer >= 1 (default: 5 x the element
+        degree, exact).
     scheme:
         ``"implicit"`` (default, the report's, steps 1-2 above) or ``"explicit"``
         (:mod:`physicsrl.fem.explicit`): refused with :class:`InvalidValue` if dt / substeps
@@ -172,12 +185,9 @@ class MonodomainMitchellSchaeffer(Coordinated):
         namespace=None,
     ):
         self.register_coordinator(coordinator, namespace)
-        if scheme not in SCHEMES:
-            raise InvalidValue(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-        if not isinstance(substeps, int) or substeps < 1 or (scheme != "explicit" and substeps > 1):
-            raise InvalidValue(
-                f"substeps must be an integer >= 1 (1 unless scheme='explicit'), got {substeps!r}"
-            )
+        substeps = scheme_substeps(scheme, substeps)
+        if quadrature_degree is not None:
+            quadrature_degree = integer("quadrature_degree", quadrature_degree)
         if rhs not in ("compiled", "numpy", "form"):
             raise InvalidValue(f"rhs must be 'compiled', 'numpy' or 'form', got {rhs!r}")
         self.scheme, self.substeps = scheme, substeps

@@ -101,7 +101,7 @@ def square_stencil(V: fem.FunctionSpace, apply, scale: float) -> tuple[Strips, f
         return None
     x, y, index = axes
     h = x[1] - x[0]
-    square = len(x) == len(y) >= 3 and all(
+    square = min(len(x), len(y)) >= 3 and all(
         np.allclose(np.diff(a), h, rtol=1e-9, atol=0) for a in (x, y)
     )
     if not square or len(y) < 2 * comm.size:

@@ -30,7 +30,9 @@ next one.
 
 Solver: PETSc options (a dict, e.g. ``{"ksp_type": "preonly", "pc_type": "lu"}``) update the
 default :data:`DEFAULT_PETSC_OPTIONS`, conjugate gradients with an incomplete Cholesky
-preconditioner (block Jacobi with one block per rank in parallel), warm-started.
+preconditioner (block Jacobi with one block per rank in parallel), warm-started. An option
+that PETSc rejects is refused at construction, one that no part of the solver reads (a
+misspelt key) when the solver is first set up, before the first step: :class:`InvalidValue`.
 """
 
 from __future__ import annotations
@@ -74,7 +76,8 @@ class TimeProblem:
     V:
         The function space of the unknown (default: Lagrange degree 1 on ``mesh``).
     petsc_options:
-        PETSc options of the linear solver, updating :data:`DEFAULT_PETSC_OPTIONS`.
+        PETSc options of the linear solver, updating :data:`DEFAULT_PETSC_OPTIONS` (keys
+        without the leading dash; checked as the module docstring says).
     Attributes
     ----------
     V, u_n, dt:
@@ -120,19 +123,34 @@ class TimeProblem:
         defaults = dict(DEFAULT_PETSC_OPTIONS)
         if mesh.comm.size == 1:  # ICC itself, without the one-block block-Jacobi wrapper
             defaults["pc_type"] = defaults.pop("sub_pc_type")
-        self._configure_solver({**defaults, **(petsc_options or {})})
-
-    def _configure_solver(self, options: dict) -> None:
-        prefix = f"physicsrl_time_problem_{next(_prefixes)}_"
-        database = PETSc.Options()
-        for key, value in options.items():
-            database[prefix + key] = value
-        self._ksp.setOptionsPrefix(prefix)
-        self._ksp.setFromOptions()
-        for key in options:
-            del database[prefix + key]
+        self._options = {**defaults, **(petsc_options or {})}
+        self._unread = set(petsc_options or ())  # the caller's options no solver part read yet
+        self._ksp.setOptionsPrefix(f"physicsrl_time_problem_{next(_prefixes)}_")
+        self._with_options(self._ksp.setFromOptions)
         if self._ksp.getType() != PETSc.KSP.Type.PREONLY:
             self._ksp.setInitialGuessNonzero(True)
+
+    def _with_options(self, action) -> None:
+        """Run ``action`` with this problem's options in PETSc's database, under its prefix.
+
+        PETSc reads them in two places: the solver's types and tolerances when it is
+        configured, the inner solvers' (``sub_pc_type`` of block Jacobi, factor packages) when
+        it is set up with its matrix. Both run here; an option of the caller's that neither
+        read is refused, as is one that PETSc rejects (:class:`InvalidValue` naming it).
+        """
+        database, prefix = PETSc.Options(), self._ksp.getOptionsPrefix()
+        for key, value in self._options.items():
+            database[prefix + key] = value
+        try:
+            action()
+            self._unread -= {key for key in self._unread if database.used(prefix + key)}
+        except PETSc.Error as error:
+            raise InvalidValue(
+                f"petsc_options: PETSc refused {self._options} (error code {error.ierr})"
+            ) from None
+        finally:
+            for key in self._options:
+                database.delValue(prefix + key)
 
     # setters ----------------------------------------------------------------------------
     def set_dt(self, dt: float) -> None:
@@ -273,6 +291,11 @@ class TimeProblem:
         self._A.assemble()
         self._ksp.setOperators(self._A)
         self._A_stale = False
+        if self._options is not None:  # the first matrix: set the solver up with the options
+            self._with_options(self._ksp.setUp)
+            self._options, unread = None, sorted(self._unread)
+            if unread:
+                raise InvalidValue(f"petsc_options: no part of the solver reads {unread}")
 
     def __del__(self):
         for obj in (getattr(self, "_A", None), getattr(self, "_ksp", None)):

@@ -26,25 +26,37 @@ from mpi4py import MPI
 from physicsrl.fem.errors import InvalidValue
 
 
+def _real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def positive(name: str, value) -> float:
     """``value`` as a float; :class:`InvalidValue` naming it unless it is finite and > 0."""
-    if not isinstance(value, numbers.Real) or not math.isfinite(value) or value <= 0:
+    if not _real(value) or not math.isfinite(value) or value <= 0:
         raise InvalidValue(f"{name} must be a finite number > 0, got {value!r}")
     return float(value)
 
 
 def nonnegative(name: str, value) -> float:
     """``value`` as a float; :class:`InvalidValue` naming it unless it is finite and >= 0."""
-    if not isinstance(value, numbers.Real) or not math.isfinite(value) or value < 0:
+    if not _real(value) or not math.isfinite(value) or value < 0:
         raise InvalidValue(f"{name} must be a finite number >= 0, got {value!r}")
     return float(value)
 
 
 def finite(name: str, value) -> float:
     """``value`` as a float; :class:`InvalidValue` naming it unless it is a finite number."""
-    if not isinstance(value, numbers.Real) or not math.isfinite(value):
+    if not _real(value) or not math.isfinite(value):
         raise InvalidValue(f"{name} must be a finite number, got {value!r}")
     return float(value)
+
+
+def integer(name: str, value, low: int = 1) -> int:
+    """``value`` as an int; :class:`InvalidValue` naming it unless it is an integer >= ``low``
+    (numpy's integers included, ``True`` not)."""
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < low:
+        raise InvalidValue(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
 
 
 def all_finite(function: fem.Function) -> bool:

@@ -7,7 +7,8 @@ strips of its structured path); heat: the default environment with u0 = x + 2y, 
 units.
 Saved: dof coordinates, u and w of the monodomain model (owned dofs of all ranks), whether
 the explicit scheme found its strips, the heat quadrant integrals at t = 0 and t = 0.1, and
-the heat u with its coordinates.
+the heat u with its coordinates, and the heat solver's preconditioner (``"bjacobi/icc"``: block
+Jacobi with ICC(0) blocks).
 """
 
 import sys
@@ -49,4 +50,20 @@ with coordinator:
 u, w, h = gather(ms.u_n()), gather(ms.w_n()), gather(heat.u_n())
 if MPI.COMM_WORLD.rank == 0:
     strips = ms._explicit is not None and ms._explicit.grid is not None
-    np.savez(sys.argv[1], u=u, w=w, strips=strips, heat=h, quadrants=quadrants, initial=initial)
+    pc = heat.problem._ksp.getPC()
+    blocks = (
+        [f"/{k.getPC().getType()}" for k in pc.getBJacobiSubKSP()[:1]]
+        if pc.getType() == "bjacobi"
+        else []
+    )
+    solver = pc.getType() + "".join(blocks)
+    np.savez(
+        sys.argv[1],
+        u=u,
+        w=w,
+        strips=strips,
+        heat=h,
+        quadrants=quadrants,
+        initial=initial,
+        solver=solver,
+    )
