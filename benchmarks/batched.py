@@ -42,6 +42,7 @@ import physicsrl.fem  # noqa: F401  (first: loads the MPI library)
 # isort: split
 
 import torch
+from bench_run import at_least  # benchmarks/ (the script's directory)
 from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinator
@@ -103,10 +104,10 @@ def copy_bandwidth(megabytes: int = 1024) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--replicas", type=int, nargs="+", default=[1, 8, 64, 512])
-    parser.add_argument("--resolved-replicas", type=int, nargs="+", default=[1, 8])
-    parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--resolved-cells", type=int, default=1000)
+    parser.add_argument("--replicas", type=at_least(1), nargs="+", default=[1, 8, 64, 512])
+    parser.add_argument("--resolved-replicas", type=at_least(1), nargs="+", default=[1, 8])
+    parser.add_argument("--steps", type=at_least(1), default=20)
+    parser.add_argument("--resolved-cells", type=at_least(2), default=1000)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import shlex
@@ -16,8 +17,22 @@ def bench_record(name: str, *overrides: str) -> dict:
     bench = Path(sys.executable).with_name("physicsrl-bench")
     with tempfile.TemporaryDirectory() as directory:
         command = [str(bench), name, *overrides, f"hydra.run.dir={directory}"]
-        subprocess.run(command, check=True, capture_output=True, text=True)
+        result = subprocess.run(command, capture_output=True, text=True)
+        if result.returncode:  # its one line (a bad setting) or its traceback, and its status
+            sys.stderr.write(result.stderr)
+            raise SystemExit(result.returncode)
         return json.loads((Path(directory) / f"{name}.json").read_text())
+
+
+def at_least(low: int):
+    """An argparse type: an integer >= ``low`` (argparse names the argument and exits 2)."""
+
+    def integer(text: str) -> int:
+        if not text.lstrip("-").isdigit() or int(text) < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}")
+        return int(text)
+
+    return integer
 
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -20,7 +20,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_run import bench_record, save_results  # noqa: E402
+from bench_run import at_least, bench_record, save_results  # noqa: E402
 
 LAYOUTS = [(1, 1), (1, 2), (2, 1), (2, 2), (4, 1)]  # (N environments, P ranks each)
 NO_OP_ENVS = [1, 2, 4, 8]
@@ -28,7 +28,7 @@ NO_OP_ENVS = [1, 2, 4, 8]
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--decisions", type=int, default=5)
+    parser.add_argument("--decisions", type=at_least(1), default=5)
     args = parser.parse_args()
 
     rows = []

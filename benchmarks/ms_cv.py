@@ -6,13 +6,14 @@ cells of side h, the model's default parameters, dt = 0.03) against the converge
 implicit scheme at h = 0.01, dt = 0.002; the explicit one there is printed as a check). The
 ratio h / width uses the cells' diameter sqrt(2) h, as :func:`~physicsrl.fem.resolution.resolution`
 does, and width = sqrt(D tau_in). Writes the library's table ``physicsrl/fem/cv_error.csv``
-and ``benchmarks/results/ms_cv.txt`` (command, table). Serial, about a minute.
+and ``benchmarks/results/ms_cv.txt`` (command, table). Serial, seconds.
 
     python benchmarks/ms_cv.py
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import math
 import sys
@@ -37,6 +38,7 @@ def speed(h: float, dt: float, scheme: str) -> float:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # --help; no options
     reference = speed(0.01, 0.002, "implicit")
     check = speed(0.01, 0.002, "explicit")
     width = math.sqrt(D * TAU_IN)

@@ -23,18 +23,21 @@ import physicsrl.fem  # noqa: F401  (first: loads the MPI library that dolfinx l
 
 import ms_cv  # benchmarks/ (the script's directory)
 import numpy as np
+from bench_run import at_least
 from dolfinx import mesh
 from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinator
-from physicsrl.fem.monodomain import MonodomainMitchellSchaeffer
+from physicsrl.fem.monodomain import SCHEMES, MonodomainMitchellSchaeffer
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cells", type=int, default=60)
-    parser.add_argument("--scheme", default="implicit")
+    parser.add_argument("--cells", type=at_least(2), default=60, help="an even number")
+    parser.add_argument("--scheme", default=SCHEMES[0], choices=SCHEMES)
     args = parser.parse_args()
+    if args.cells % 2:
+        parser.error(f"--cells={args.cells}: must be even (the front is read on the row y = 0)")
     n = args.cells
     domain = mesh.create_rectangle(
         MPI.COMM_SELF, [[-50, -50], [50, 50]], [n, n], mesh.CellType.quadrilateral

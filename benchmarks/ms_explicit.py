@@ -30,7 +30,7 @@ import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from bench_run import bench_record, save_results  # noqa: E402
+from bench_run import at_least, bench_record, save_results  # noqa: E402
 
 DECISION_GRID = 1000
 DECISION_STEPS = 1667  # 50 time units of dt = 0.03
@@ -87,10 +87,10 @@ def decision_seconds(n: int) -> tuple[float, float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=201)
-    parser.add_argument("--per-call", type=int, default=100)
+    parser.add_argument("--steps", type=at_least(2), default=201)
+    parser.add_argument("--per-call", type=at_least(1), default=100)
     parser.add_argument("--skip-3000", action="store_true")
-    parser.add_argument("--repeats", type=int, default=3, help="of the scaling runs")
+    parser.add_argument("--repeats", type=at_least(1), default=3, help="of the scaling runs")
     args = parser.parse_args()
     runs = [(n, ranks, args.steps) for n in (60, 1000, 2000) for ranks in (1, 2)]
     if not args.skip_3000:

@@ -24,7 +24,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_run import bench_record, save_results  # noqa: E402
+from bench_run import at_least, bench_record, save_results  # noqa: E402
 
 
 def fit(ranks: np.ndarray, times: np.ndarray) -> tuple[float, float]:
@@ -36,9 +36,9 @@ def fit(ranks: np.ndarray, times: np.ndarray) -> tuple[float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--grids", type=int, nargs="+", default=[250, 500, 1000])
-    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--ranks", type=at_least(1), nargs="+", default=[1, 2])
+    parser.add_argument("--grids", type=at_least(2), nargs="+", default=[250, 500, 1000])
+    parser.add_argument("--steps", type=at_least(2), default=20)
     parser.add_argument("--baseline", action="store_true", help="also run the report's port")
     args = parser.parse_args()
 

@@ -20,7 +20,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_run import bench_record, save_results  # noqa: E402
+from bench_run import at_least, bench_record, save_results  # noqa: E402
 
 METHODS = ["physicsrl", "report design", "floor (Bcast 16 B)"]
 REPORT = {1: 1.961, 2: 2.517, 4: 3.410, 8: 5.353}  # Table 1, microseconds per call
@@ -28,9 +28,9 @@ REPORT = {1: 1.961, 2: 2.517, 4: 3.410, 8: 5.353}  # Table 1, microseconds per c
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4])
-    parser.add_argument("--calls", type=int, default=200_000)
-    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--ranks", type=at_least(1), nargs="+", default=[1, 2, 4])
+    parser.add_argument("--calls", type=at_least(1), default=200_000)
+    parser.add_argument("--repeats", type=at_least(1), default=7)
     args = parser.parse_args()
 
     rows, goals = [], []

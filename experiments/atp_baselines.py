@@ -50,7 +50,7 @@ import numpy as np
 
 from physicsrl import builders
 from physicsrl.checks import build, plain
-from physicsrl.cli.command import compose
+from physicsrl.cli.train import train_config
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.atp import ATPConfig, ResetSampler
@@ -87,6 +87,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
     args = parser.parse_args()
+    if args.seeds < 1:
+        parser.error(f"--seeds {args.seeds}: must be an integer >= 1")
     keep = args.policies.split(",")
     unknown = [k for k in keep if k not in POLICIES]
     if unknown:
@@ -107,7 +109,7 @@ def main() -> None:
         settings["seed_list"] = listed
     if gaps:
         settings["gaps"] = gaps
-    cfg = compose("train", [f"+experiment={args.experiment}", *args.overrides])
+    cfg = train_config([f"+experiment={args.experiment}", *args.overrides])
     make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     with abort_on_error(), environments(make_env, cfg.mpi.ranks_per_env) as env:
         if env is None:  # a rank that served an environment
@@ -124,7 +126,7 @@ def main() -> None:
             if args.schedules:
                 names = args.schedules.split(",")
                 if set(names) - set(policies):
-                    raise SystemExit(f"--schedules: unknown {sorted(set(names) - set(policies))}")
+                    parser.error(f"--schedules: unknown {sorted(set(names) - set(policies))}")
                 policies = {name: policies[name] for name in names}
         else:
             single = args.single_shock if "single" in keep else 0  # 0: no search when unused

@@ -26,7 +26,8 @@ import sys
 from pathlib import Path
 
 from physicsrl import builders
-from physicsrl.cli.command import compose
+from physicsrl.checks import integer
+from physicsrl.cli.train import train_config
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule
@@ -59,10 +60,17 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.extra_waits=0")
     args = parser.parse_args()
-    policies = {name: policy(name) for name in args.policies.split(",")}
+    try:
+        integer("--seeds", args.seeds, 1)
+        policies = {name: policy(name) for name in args.policies.split(",")}
+    except ValueError as error:
+        parser.error(str(error))
+    draws = args.draws.split(",") if args.draws else range(args.seeds)
+    if not {str(i) for i in draws} <= {str(i) for i in range(args.seeds)}:
+        parser.error(f"--draws {args.draws}: indices from 0 to --seeds - 1 = {args.seeds - 1}")
     default = "explicit" if args.cells > EXPLICIT_ABOVE else "implicit"
     overrides = [f"env.mesh.cells={args.cells}", f"env.model.scheme={default}", *args.overrides]
-    cfg = compose("train", [f"+experiment={args.experiment}", *overrides])
+    cfg = train_config([f"+experiment={args.experiment}", *overrides])
     scheme = cfg.env.model.scheme  # an env.model.scheme override wins
     make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
     results = args.out / f"{args.experiment}_convergence.csv"
@@ -79,9 +87,7 @@ def main() -> None:
                     (r["cells"], r["scheme"], r["policy"], r["seed"]) for r in csv.DictReader(file)
                 }
         n = env.batch_size[0] if isinstance(env, GroupedEnv) else 1
-        seeds = held_out_seeds(args.seeds)
-        if args.draws:
-            seeds = [seeds[int(i)] for i in args.draws.split(",")]
+        seeds = [held_out_seeds(args.seeds)[int(i)] for i in draws]
         for name, actions in policies.items():
             todo = [s for s in seeds if (str(args.cells), scheme, name, str(s)) not in done]
             for start in range(0, len(todo), n):  # one episode per environment, then saved

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from physicsrl import builders
-from physicsrl.cli.command import compose
+from physicsrl.cli.train import train_config
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, Policy, Schedule
@@ -53,7 +53,7 @@ def make_env(replicas: int, overrides: list[str]):
     """The timing variant on the bar's simulator (``overrides`` last), and its env factory."""
     simulator = ["env.model.backend=torch", "env.model.compile=true", "env.model.dtype=float32"]
     settings = ["+experiment=atp_timing", *simulator, f"env.replicas={replicas}", *overrides]
-    cfg = compose("train", settings)
+    cfg = train_config(settings)
     return cfg, lambda coordinator: builders.make_env(cfg, coordinator)
 
 

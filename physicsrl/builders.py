@@ -277,11 +277,12 @@ def make_target_updater(loss_module: DQNLoss, target: TargetConfig):
     return HardUpdate(loss_module, value_network_update_interval=target.period)
 
 
-def make_optimizer(loss_module: nn.Module, optim: OptimConfig) -> torch.optim.Optimizer:
-    """Adam over the trainable parameters of the loss (the target network is not trainable)."""
+def make_optimizer(loss_module: nn.Module, optim: OptimConfig, lr: float) -> torch.optim.Optimizer:
+    """Adam over the trainable parameters of the loss (the target network is not trainable),
+    at ``optim.lr``, or at ``lr`` (the agent's) when that is None."""
     return torch.optim.Adam(
         [p for p in loss_module.parameters() if p.requires_grad],
-        lr=optim.lr,
+        lr=lr if optim.lr is None else optim.lr,
         weight_decay=optim.weight_decay,
     )
 

@@ -26,7 +26,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from physicsrl.checks import integer, number, positive
+from physicsrl.checks import integer, number, plain, positive
 
 HELD_OUT_START = 1_000_000_000
 SEEDS_PER_RUN = 1_000_000
@@ -205,14 +205,15 @@ class LossConfig:
 
 @dataclass
 class OptimConfig:
-    lr: float = 1e-3  # train.yaml: ${agent.lr}
+    lr: float | None = None  # None: the agent's (agent.lr)
     weight_decay: float = 0.0
     updates_per_batch: int = 8
     learning_starts: int = 200  # frames collected before the first update
     grad_clip: float = 10.0  # max gradient norm (0: off)
 
     def __post_init__(self):
-        positive("optim.lr", self.lr)
+        if self.lr is not None:
+            positive("optim.lr", self.lr)
         number("optim.weight_decay", self.weight_decay, low=0.0)
         integer("optim.updates_per_batch", self.updates_per_batch, 0)
         integer("optim.learning_starts", self.learning_starts, 0)
@@ -293,10 +294,19 @@ class EvalConfig:
 
     def __post_init__(self):
         positive("fps", self.fps)
-        if isinstance(self.seeds, int) and not isinstance(self.seeds, bool):
-            integer("seeds", self.seeds, 1)
-        elif self.seeds is not None and not self.seeds:
-            raise ValueError("seeds must be N >= 1, a non-empty list of seeds, or null")
+        seeds = plain(self.seeds)
+        if isinstance(seeds, list) and seeds:
+            for i, seed in enumerate(seeds):
+                integer(f"seeds[{i}]", seed, 0)
+        elif seeds is not None:
+            try:
+                integer("seeds", seeds, 1)
+            except ValueError:
+                raise ValueError(
+                    f"seeds must be N >= 1, a non-empty list of seeds >= 0, or null; got {seeds!r}"
+                ) from None
+        if self.gif_seed is not None:
+            integer("gif_seed", self.gif_seed, 0)
 
 
 def network_parameters(n_inputs: int, hidden: list[int], n_actions: int) -> int:

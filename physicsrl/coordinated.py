@@ -60,6 +60,7 @@ import numpy as np
 from mpi4py import MPI
 
 from physicsrl.guard import ended
+from physicsrl.launch import check_sequence_from_environment, timeout_from_environment
 
 __all__ = [
     "Coordinator",
@@ -79,13 +80,11 @@ _HEADER = struct.Struct("<4i")  # route, flags, payload length, sequence number
 _STOP, _FAIL, _EXIT = -1, -2, -3  # _EXIT carries the leader's exit status in the flags
 _PICKLE, _CLOUDPICKLE, _DEFINE = 1, 2, 4
 _TAG, _DONE_TAG, _FAILED_TAG = 17, 18, 19
-# A failing follower waits this long for word that the leader failed in the same call.
+# A failing follower waits this long for word that the leader failed in the same call, or,
+# under abort_on_error, for the leader's abort, before it reports its own failure.
 LEADER_FAILED_GRACE_S = 2.0
 REPORT_S = 0.01  # a follower under the watchdog reports finished calls at most this often
 INTERRUPTED = 130  # the shell's status for a process ended by SIGINT
-
-CHECK_ENV = "PHYSICSRL_CHECK_SEQUENCE"
-TIMEOUT_ENV = "PHYSICSRL_TIMEOUT"
 
 
 class CoordinationError(RuntimeError):
@@ -152,7 +151,9 @@ class abort_on_error:  # noqa: N801 (used as a context manager, like contextlib 
     """End all ranks with exit status 1 when the block raises on any rank.
 
     Without it, an exception on one rank leaves the others waiting in their next collective.
-    On one rank the exception propagates unchanged.
+    The traceback is printed once when every rank fails alike: a failing follower reports
+    only if the leader's abort has not ended it within :data:`LEADER_FAILED_GRACE_S`. On one
+    rank the exception propagates unchanged.
     """
 
     def __init__(self, comm: MPI.Comm = MPI.COMM_WORLD):
@@ -164,6 +165,8 @@ class abort_on_error:  # noqa: N801 (used as a context manager, like contextlib 
     def __exit__(self, kind, value, tb):
         if kind is None or self.comm.size == 1 or issubclass(kind, SystemExit):
             return False
+        if self.comm.rank != 0:
+            time.sleep(LEADER_FAILED_GRACE_S)
         _fail(self.comm, "uncaught exception, aborting all ranks")
         return False
 
@@ -233,8 +236,11 @@ class Coordinator:
             step *= 2
         self.spin_s = spin_s
         self.max_sleep_s = max_sleep_s
-        self.check = bool(int(os.environ.get(CHECK_ENV, "0"))) if check is None else check
-        self.timeout = _timeout_from_environment() if timeout is None else timeout
+        try:
+            self.check = check_sequence_from_environment() if check is None else check
+            self.timeout = timeout_from_environment() if timeout is None else timeout
+        except ValueError as error:
+            raise CoordinationError(str(error)) from None
         if self.timeout is not None and not self.timeout > 0:
             raise CoordinationError(f"timeout={self.timeout}: must be a number of seconds > 0")
         self._watchdog: _Watchdog | None = None  # the leader's, while the watchdog is on
@@ -551,16 +557,6 @@ def _exit_status(code: Any) -> int:
     if code is None:
         return 0
     return code if isinstance(code, int) else 1
-
-
-def _timeout_from_environment() -> float | None:
-    text = os.environ.get(TIMEOUT_ENV, "").strip()
-    if not text:
-        return None
-    try:
-        return float(text)
-    except ValueError:
-        raise CoordinationError(f"{TIMEOUT_ENV}={text!r}: must be a number of seconds") from None
 
 
 class _Watchdog:

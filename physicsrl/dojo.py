@@ -165,7 +165,7 @@ class Dojo:
         self.q_network = q_network
         self.loss = builders.make_loss(self.q_network, env, config.loss)
         self.target_updater = builders.make_target_updater(self.loss, config.loss.target)
-        self.optimizer = builders.make_optimizer(self.loss, config.optim)
+        self.optimizer = builders.make_optimizer(self.loss, config.optim, config.agent.lr)
         self.log_dir = None if log_dir is None else Path(log_dir)
         scratch = None if self.log_dir is None else self.log_dir / "buffer"
         self.replay_buffer = builders.make_buffer(config.buffer, scratch)
@@ -362,8 +362,6 @@ class Dojo:
             "wall_s": round(sum(self.counters.time_s.values()), 3),  # of training, resumes too
             **metrics,
         }
-        # rows restored from a checkpoint come back with their keys sorted (JSON): this order
-        self.history[:] = [{k: r[k] for k in row if k in r} | r for r in self.history]
         self.history.append(row)
         self._log_evaluation(row)
         return metrics
@@ -452,8 +450,16 @@ class Dojo:
         """Restore the checkpoint ``path``; return its ``extra``."""
         extra: dict = {}
         self.checkpoint(extra).load(path, map_location="cpu")
+        self.history[:] = [self._in_order(row) for row in self.history]
         log.info("resumed from %s at %s", path, self._position())
         return extra
+
+    def _in_order(self, row: dict) -> dict:
+        """An evaluation row restored from JSON (its keys sorted) in :meth:`evaluate`'s order:
+        the counters, return and length, the env's flags (sorted), the action counts."""
+        first, last = ("iteration", "frames", "wall_s", "return", "length"), (*self.action_counts,)
+        middle = sorted(key for key in row if key not in first + last)
+        return {key: row[key] for key in (*first, *middle, *last) if key in row}
 
     def _position(self) -> str:
         return (

@@ -13,6 +13,7 @@ from the leader, before any work.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shutil
@@ -75,11 +76,44 @@ def mpiexec() -> str:
     return found
 
 
+TIMEOUT_ENV = "PHYSICSRL_TIMEOUT"
+CHECK_ENV = "PHYSICSRL_CHECK_SEQUENCE"
+
+
+def timeout_from_environment() -> float | None:
+    """The coordinator's watchdog timeout, ``PHYSICSRL_TIMEOUT`` seconds (None: unset or
+    empty); ValueError unless it is a number > 0."""
+    text = os.environ.get(TIMEOUT_ENV, "").strip()
+    if not text:
+        return None
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not seconds > 0 or math.isinf(seconds):
+        raise ValueError(f"{TIMEOUT_ENV}={text!r}: must be a number of seconds > 0")
+    return seconds
+
+
+def check_sequence_from_environment() -> bool:
+    """Whether ``PHYSICSRL_CHECK_SEQUENCE`` (0 or 1; unset: 0) asks the coordinator to check
+    every call's sequence; ValueError otherwise."""
+    text = os.environ.get(CHECK_ENV, "0").strip() or "0"
+    if text not in ("0", "1"):
+        raise ValueError(f"{CHECK_ENV}={text!r}: must be 0 or 1")
+    return text == "1"
+
+
 def relaunch(overrides: list[str]) -> None:
     """Re-execute this command under mpiexec if ``mpi.ranks=N`` asks for more ranks.
 
     Under a launcher the request must match the launcher's size; nothing happens otherwise.
+    The coordinator's environment variables are checked first (one line, status 2).
     """
+    try:
+        timeout_from_environment(), check_sequence_from_environment()
+    except ValueError as error:
+        refuse(str(error))
     ranks = requested_ranks(overrides)
     size = launched_size()
     if ranks is None or ranks == (size or 1):

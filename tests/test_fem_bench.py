@@ -17,9 +17,9 @@ def test_ms_benchmark_core_on_a_tiny_grid():
     baseline's final u equals physicsrl's implicit one within 1e-8, the floor's equals the
     explicit one to round-off (the structured stencil is the assembled operator), and the
     explicit differs from the implicit (another scheme); the one goal of this grid is judged
-    from the rows' own times."""
-    cfg = {"grid": {"n": 20}, "steps": 40, "steps_per_call": 1, "baseline": True, "scheme": "both"}
-    rows = ms.run(OmegaConf.create(cfg))
+    from the rows' own times, as is a row of another right-hand side."""
+    cfg = {"grid": {"n": 20}, "steps": 40, "steps_per_call": 1, "baseline": True}
+    rows = ms.run(OmegaConf.create({**cfg, "scheme": "both", "rhs": "compiled"}))
     names = ["physicsrl", "physicsrl explicit", "floor (structured C loop)", "report (baseline)"]
     assert [row["implementation"] for row in rows] == names
     for row in rows:
@@ -30,3 +30,5 @@ def test_ms_benchmark_core_on_a_tiny_grid():
     assert rows[1]["max_abs_diff_u"] > 1e-3
     ratio = round(rows[3]["step_ms"] / rows[0]["step_ms"], 2)  # the goal's: baseline / implicit
     assert ms.goals(rows) == [(f"20x20, 1 ranks: {ratio}x the baseline >= 10x", ratio >= 10)]
+    numpy = {**rows[0], "implementation": "physicsrl (rhs=numpy)", "step_ms": rows[3]["step_ms"]}
+    assert ms.goals([numpy, rows[3]]) == [("20x20, 1 ranks: 1.0x the baseline >= 10x", False)]

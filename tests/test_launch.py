@@ -65,18 +65,52 @@ def test_mismatched_rank_request_is_a_one_line_error(tmp_path):
 
 def test_unknown_benchmark_is_a_one_line_error(tmp_path):
     result = run([str(BIN / "physicsrl-bench"), "pong"], cwd=tmp_path)
-    assert result.returncode != 0
+    assert result.returncode == 2
     expected = "error: unknown benchmark 'pong'; choose one of ping, ms, env, groups"
     assert result.stderr.strip() == expected
 
 
+FAULTY_REWARD = """
+from dataclasses import dataclass
+
+from physicsrl.envs import REWARDS, Reward
+
+
+@REWARDS.register("faulty")
+@dataclass(frozen=True)
+class Faulty(Reward):
+    def __call__(self, events):
+        raise RuntimeError("the user's reward failed")
+"""
+
+
 def test_an_exception_inside_a_hydra_command_ends_every_rank(tmp_path):
-    # rhs=bogus raises in the simulator on every rank: Hydra alone would catch it and leave
-    # ranks waiting
-    settings = ["grid.n=4", "steps=1", "baseline=false", "+rhs=bogus", "mpi.ranks=2"]
-    result = run([str(BIN / "physicsrl-bench"), "ms", *settings], cwd=tmp_path, timeout=60)
+    """A user's reward that raises at the first step, on the leader, while the follower waits
+    in the simulator's next call: Hydra alone would catch it and leave the follower waiting.
+    Every rank ends, non-zero, with the traceback once."""
+    (tmp_path / "faulty.py").write_text(FAULTY_REWARD)
+    (tmp_path / "conf" / "reward").mkdir(parents=True)
+    (tmp_path / "conf" / "reward" / "faulty.yaml").write_text("name: faulty\nmodule: faulty.py\n")
+    settings = [f"hydra.searchpath=[file://{tmp_path / 'conf'}]", "reward=faulty", "mpi.ranks=2"]
+    result = run([str(BIN / "physicsrl-train"), *settings], cwd=tmp_path, timeout=90)
     assert result.returncode != 0
-    assert "rhs must be 'compiled', 'numpy' or 'form', got 'bogus'" in result.stderr
+    assert result.stderr.count("RuntimeError: the user's reward failed") == 1, result.stderr
+
+
+@pytest.mark.parametrize(
+    "variable, value, message",
+    [
+        ("PHYSICSRL_TIMEOUT", "abc", "PHYSICSRL_TIMEOUT='abc': must be a number of seconds > 0"),
+        ("PHYSICSRL_TIMEOUT", "-1", "PHYSICSRL_TIMEOUT='-1': must be a number of seconds > 0"),
+        ("PHYSICSRL_CHECK_SEQUENCE", "yes", "PHYSICSRL_CHECK_SEQUENCE='yes': must be 0 or 1"),
+    ],
+)
+def test_a_bad_coordinator_variable_is_a_one_line_error_before_launching(
+    tmp_path, variable, value, message
+):
+    command = [str(BIN / "physicsrl-bench"), "ping", "mpi.ranks=2"]
+    result = run(command, cwd=tmp_path, env={**os.environ, variable: value})
+    assert (result.returncode, result.stderr) == (2, f"error: {message}\n")
 
 
 @pytest.mark.parametrize(

@@ -125,11 +125,14 @@ def test_training_goes_on_from_a_training_seed_after_an_evaluation():
     """With episodes running across batches (``reset_at_each_iter: false``) the evaluation
     reseeds the env with held-out seeds; training then goes on from the generator of
     ``train_seed(seed, iteration)``, never from a held-out one (a task with a pool of training
-    draws would otherwise draw held-out episodes, or never the pool)."""
+    draws would otherwise draw held-out episodes, or never the pool). The learning rate is
+    the agent's unless ``optim.lr`` is set."""
     from physicsrl import config as c
+    from physicsrl.builders import make_optimizer
 
     config = c.TrainConfig(
         seed=3,
+        agent=c.DQNAgent(lr=3e-4),
         collector=c.CollectorConfig(frames_per_batch=8, reset_at_each_iter=False),
         optim=c.OptimConfig(learning_starts=64),
         eval=c.Evaluation(every=2, seeds=c.held_out_seeds(2)),
@@ -138,6 +141,9 @@ def test_training_goes_on_from_a_training_seed_after_an_evaluation():
     dojo = train_toy_chain(config, 2)
     assert [row["iteration"] for row in dojo.history] == [2]
     assert dojo.env.rng.bit_generator.seed_seq.entropy == c.train_seed(3, 2)
+    assert dojo.optimizer.param_groups[0]["lr"] == 3e-4
+    optimizer = make_optimizer(dojo.loss, c.OptimConfig(lr=1e-2), lr=3e-4)
+    assert optimizer.param_groups[0]["lr"] == 1e-2
 
 
 def train_toy_chain(config, iterations: int, log_dir: Path | None = None):
@@ -160,9 +166,11 @@ def train_toy_chain(config, iterations: int, log_dir: Path | None = None):
 def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
     """A run whose last iteration is checkpointed in the loop (4, every 2) but not evaluated
     there (every 3): the final evaluation's row is in the last checkpoint as well as in
-    ``eval.csv``, so a resumed run keeps it."""
+    ``eval.csv``, so a resumed run keeps it, its columns in the same order (a JSON round trip
+    sorts them)."""
     from physicsrl import config as c
     from physicsrl.checkpoint import Checkpoints, read
+    from physicsrl.dojo import Dojo
 
     config = c.TrainConfig(
         collector=c.CollectorConfig(frames_per_batch=8),
@@ -170,8 +178,11 @@ def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
         checkpoint=c.CheckpointConfig(every=2),
         logger=c.LoggerConfig(progress=False, tensorboard=False),
     )
-    train_toy_chain(config, 4, log_dir=tmp_path)
+    dojo = train_toy_chain(config, 4, log_dir=tmp_path)
     checkpoints = Checkpoints(tmp_path / "checkpoints", keep=3)
+    resumed = Dojo(dojo.q_network, dojo.env, config)
+    resumed.load_checkpoint(checkpoints.latest())
+    assert [list(row) for row in resumed.history] == [list(row) for row in dojo.history]
     assert [p.name for p in checkpoints.paths()] == [checkpoint_name(i) for i in (2, 4)]
     stored = read(checkpoints.latest(), ["history", "counters"])
     assert [row["iteration"] for row in stored["history"]] == [3, 4]

@@ -13,6 +13,7 @@ SETTINGS: dict[str, dict[str, tuple[type | tuple[str, ...], float | None]]] = {
         "steps": (int, 1),
         "steps_per_call": (int, 1),
         "scheme": (("implicit", "explicit", "both"), None),
+        "rhs": (("compiled", "numpy", "form"), None),
         "baseline": (bool, None),
     },
     "env": {

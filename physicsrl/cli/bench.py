@@ -18,7 +18,7 @@ import sys
 
 from physicsrl.bench import SETTINGS
 from physicsrl.guard import guard
-from physicsrl.launch import output_dir, relaunch, run_hydra
+from physicsrl.launch import check_layout, launched_size, output_dir, refuse, relaunch, run_hydra
 from physicsrl.tables import format_table, write_csv
 
 BENCHMARKS = {
@@ -57,16 +57,30 @@ def check_settings(cfg, settings: dict[str, tuple[type | tuple[str, ...], float 
 
 
 def check(cfg, name: str) -> None:
-    """:func:`check_settings` of benchmark ``name``, and the ATP task it builds from its
+    """:func:`check_settings` of benchmark ``name``, the settings that must agree (ms: more
+    steps than the first call's, which is timed apart; groups: the layout of the job's ranks
+    and no reset within the timed decisions), and the ATP task it builds from its
     ``overrides`` (benchmarks env and groups), as ``make_env`` will read it; nothing is built."""
     check_settings(cfg, SETTINGS[name])
+    if name == "ms" and cfg.steps <= cfg.steps_per_call:
+        raise ValueError(
+            f"steps={cfg.steps}: must exceed steps_per_call={cfg.steps_per_call} (the first "
+            "call is timed apart from the others)"
+        )
+    if name == "groups":
+        check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
     if "overrides" in cfg:
         from physicsrl.checks import build, plain
         from physicsrl.envs import TASKS, load_config
 
         groups = plain(load_config("ms", "catheter", "atp", list(cfg.overrides)))
         task, settings = TASKS.lookup(groups["env"])
-        build(task.Config, settings, "env")
+        env = build(task.Config, settings, "env")
+        if name == "groups" and cfg.decisions > env.max_decisions:
+            raise ValueError(
+                f"decisions={cfg.decisions}: must be at most env.max_decisions="
+                f"{env.max_decisions} (no reset within the timed steps)"
+            )
 
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
@@ -92,8 +106,7 @@ def main() -> None:
         return
     name, overrides = arguments[0], arguments[1:]
     if name not in BENCHMARKS:
-        choices = ", ".join(BENCHMARKS)
-        raise SystemExit(f"error: unknown benchmark {name!r}; choose one of {choices}")
+        refuse(f"unknown benchmark {name!r}; choose one of {', '.join(BENCHMARKS)}")
     relaunch(overrides)
     guard()
     from physicsrl.cli.command import validate_or_exit

@@ -89,6 +89,13 @@ def env_inputs(task, observation) -> dict[str, tuple[int, int]]:
     return {"observation": (observation.size, 4), "step": (1, 8), **flags}
 
 
+def train_config(overrides: list[str]):
+    """The config that ``physicsrl-train <overrides>`` runs, checked as it checks it (one line
+    and status 2 on every rank otherwise): for scripts that build its env."""
+    command.validate_or_exit("train", overrides, check_task)
+    return command.compose("train", overrides)
+
+
 def main() -> None:
     command.main("train", "physicsrl.training:train", check_task)
 
