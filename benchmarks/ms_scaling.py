@@ -1,11 +1,12 @@
 """Sweep `physicsrl-bench ms` over ranks and grids, fit time = A / ranks + B, draw the figure.
 
 Re-creates the strong-scaling study of the report (section 4.3.3) for physicsrl's monodomain
-Mitchell-Schaeffer step: each (grid, ranks) pair is one run of `physicsrl-bench ms` (physicsrl
-only, ``baseline=false``, unless ``--baseline``), whose per-step time (mean of steps 2..N) and
-phase split are collected into benchmarks/results/ms.csv. Per grid, the report's model
-time = A / ranks + B (A: the parallelisable work, B: the serial part and communication) is
-fitted by least squares (exact for two rank counts) and the parallel efficiency
+Mitchell-Schaeffer step: each (grid, ranks) pair is one run of `physicsrl-bench ms` (its
+default ``scheme=both``: the implicit and explicit schemes and the explicit one's floor; the
+report's port only with ``--baseline``), whose per-step times (mean of steps 2..N) and phase
+splits are collected into benchmarks/results/ms.csv. Per grid, the report's model of the
+implicit scheme's time, A / ranks + B (A: the parallelisable work, B: the serial part and
+communication), is fitted by least squares (exact for two rank counts) and the parallel efficiency
 T(1) / (ranks * T(ranks)) is printed; benchmarks/results/ms.png shows the times and the fits,
 benchmarks/results/ms.txt the command, the fits and the efficiencies.
 

@@ -48,8 +48,9 @@ def main() -> None:
     for method in METHODS:
         points = [(r["ranks"], r["us_per_call"]) for r in rows if r["method"] == method]
         x, y = np.array(points).T
-        b, a = np.polyfit(x, y, 1)
-        fits.append(f"{method}: time = {a:.3f} + {b:.3f} * ranks (us)")
+        if len(set(x)) >= 2:  # a line needs two rank counts
+            b, a = np.polyfit(x, y, 1)
+            fits.append(f"{method}: time = {a:.3f} + {b:.3f} * ranks (us)")
         axes.plot(x, y, "o-", label=method)
     axes.plot(
         list(REPORT), list(REPORT.values()), "k--", alpha=0.5, label="report, Table 1 (cluster)"

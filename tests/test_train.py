@@ -574,8 +574,8 @@ def test_eval_command_tables_a_trained_run(reference, tmp_path):
         ("train", "buffer.storage=disk", "'buffer.storage'"),
         ("train", "+agent.network.depth=3", "unknown key 'agent.network.depth'"),
         ("eval", "fps=0", "fps must be a finite number > 0, got 0.0"),
-        ("eval", "seeds=[]", "seeds must be N >= 1, a non-empty list of seeds, or null"),
-        ("eval", "seeds=0", "seeds must be an integer >= 1, got 0"),
+        ("eval", "seeds=[]", "seeds must be N >= 1, a non-empty list of seeds >= 0, or null"),
+        ("eval", "seeds=0", "seeds must be N >= 1, a non-empty list of seeds >= 0, or null; got 0"),
         ("eval", "run=/etc/passwd", "run=/etc/passwd is not a checkpoint file"),
     ],
 )

@@ -172,14 +172,9 @@ class BatchedMonodomain:
             raise InvalidValue("BatchedMonodomain: the mesh must live on MPI.COMM_SELF")
         substeps = scheme_substeps(scheme, substeps)
         rates = {"tau_in": tau_in, "tau_out": tau_out, "tau_open": tau_open}
-        for name, value in {
-            **rates,
-            "tau_close": tau_close,
-            "D": D,
-            "dt": dt,
-            "rtol": rtol,
-        }.items():
+        for name, value in {**rates, "tau_close": tau_close, "D": D, "dt": dt}.items():
             positive(name, value)
+        positive("rtol", rtol)
         self.u_gate = finite("u_gate", u_gate)
         self.device = torch.device(default_device() if device is None else device)
         dtype = DTYPES.get(dtype, dtype) if isinstance(dtype, str) else dtype
