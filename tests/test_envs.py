@@ -155,6 +155,9 @@ def test_atp_reward_by_hand():
         (("ms", "catheter", "atp"), "env.shock.duration=60", "env.shock.duration"),
         (("ms", "catheter", "atp"), "env.reset.half_width=[4,2]", "env.reset.half_width"),
         (("ms", "catheter", "atp"), "env.max_decisions=0", "env.max_decisions"),
+        (("ms", "catheter", "atp"), "env.decision_interval=0.01", "env.decision_interval"),
+        (("ms", "catheter", "atp"), "env.cross_field.s1_time=1", "env.cross_field.s1_time"),
+        (("heat", "quadrants", "heat_stop"), "envs.mesh.cells=8", "'envs' is not one of"),
     ],
 )
 def test_bad_config_values_raise_naming_the_key(groups, override, message):

@@ -185,12 +185,14 @@ def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
     ]
     env = atp_env(*overrides)
     task = env.task
-    draws = [(1.5, 3.0, 20.0, 15.0), (-4.0, 2.5, 12.0, 15.0)]
+    draws = [(1.5, 3.0, 20.0, 15.02), (-4.0, 2.5, 12.0, 15.0)]  # 15.02: 501 steps of 0.03
     with task.coordinator:
         start = time.perf_counter()
         first = task.reset(*draws[0])
         induce = time.perf_counter() - start
         u, w = task.simulator.u_n().x.array.copy(), task.simulator.w_n().x.array.copy()
+        t = task.simulator.t
+        assert t == pytest.approx(17.04, abs=1e-9)  # 67 steps of the stimulus's 2, 501 of 15.02
         after = act(env, 0)["observation"]
         task.reset(*draws[1])
         start = time.perf_counter()
@@ -199,6 +201,7 @@ def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
         np.testing.assert_array_equal(again, first)
         np.testing.assert_array_equal(task.simulator.u_n().x.array, u)
         np.testing.assert_array_equal(task.simulator.w_n().x.array, w)
+        assert task.simulator.t == t
         np.testing.assert_array_equal(act(env, 0)["observation"], after)  # same future
         assert induce / restore >= 20, (induce, restore)
 

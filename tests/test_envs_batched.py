@@ -222,7 +222,8 @@ def test_policies_share_the_replicas_and_each_episode_is_its_own():
 def test_gymnasium_vector_view_of_replicas_steps_as_the_env():
     """``GymnasiumVectorView`` over 2 replicas gives the observations and rewards of the
     TorchRL env seeded alike, and restarts the episodes that end (2 decisions and 2 extra waits
-    here) within the step, keeping their last observations in ``final_obs``."""
+    here) within the step, keeping their last observations in ``final_obs`` and their last
+    infos in ``final_info``, as gymnasium's vector envs do."""
     env, view = batched(2), GymnasiumVectorView(batched(2))
     assert view.single_observation_space.shape == (20,) and view.num_envs == 2
     td = env.reset()
@@ -240,10 +241,29 @@ def test_gymnasium_vector_view_of_replicas_steps_as_the_env():
         if ended.any():
             final = np.stack(infos["final_obs"][ended])
             np.testing.assert_array_equal(final, stepped["next", "observation"].numpy()[ended])
+            np.testing.assert_array_equal(infos["_final_info"], ended)
+            last_steps = stepped["next", "step"].numpy().ravel()[ended]
+            np.testing.assert_array_equal(infos["final_info"]["step"][ended], last_steps)
         ends.append(ended.tolist())
         steps.append(infos["step"].tolist())
     assert ends == [[False, False], [True, True], [False, False]]
     assert steps == [[1, 1], [0, 0], [1, 1]]  # restarted within the second step
+
+
+def test_a_reset_that_names_no_replica_and_an_action_out_of_range():
+    """A ``_reset`` mask naming none restarts none: the next step is that of a twin env that
+    was not reset; an action other than 0 and 1 is refused, as the PETSc backend refuses it."""
+    env, twin = batched(2), batched(2)
+    td, twin_td = env.reset(), twin.reset()
+    env.reset(TensorDict({"_reset": torch.zeros(2, 1, dtype=torch.bool)}, [2]))
+    td["action"] = twin_td["action"] = torch.tensor([1, 0])
+    stepped, twin_stepped = env.step(td), twin.step(twin_td)
+    np.testing.assert_array_equal(
+        stepped["next", "observation"], twin_stepped["next", "observation"]
+    )
+    td["action"] = torch.tensor([0, 2])
+    with pytest.raises(ValueError, match=r"action must be 0 \(wait\) or 1 \(shock\), got 2"):
+        env.step(td)
 
 
 @pytest.mark.parametrize(

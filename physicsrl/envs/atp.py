@@ -225,6 +225,11 @@ class CrossField:
             object.__setattr__(self, name, interval(name, getattr(self, name)))
         number("current", self.current)
         number("stimulus_time", self.stimulus_time, low=0.0)
+        if self.s1_time < self.stimulus_time:
+            raise ValueError(
+                f"s1_time must be >= stimulus_time = {self.stimulus_time} (S1 lasts "
+                f"stimulus_time), got {self.s1_time!r}"
+            )
         object.__setattr__(self, "rest_time", rest_range(self.rest_time))
 
 
@@ -294,6 +299,11 @@ class ATPConfig:
                 f"torch; more PETSc environments come from mpi.ranks), got {self.replicas!r}"
             )
         model = self.model
+        if round(self.decision_interval / model.dt) < 1:
+            raise ValueError(
+                f"decision_interval must be at least one time step model.dt = {model.dt}, "
+                f"got {self.decision_interval!r}"
+            )
         step = model.dt / model.substeps
         if model.scheme == "explicit" and step > (limit := self.mesh.explicit_limit(model.D)):
             raise ValueError(
@@ -400,11 +410,15 @@ class ATPTask(Task):
         sim.problem.t = t
 
     def _start_time(self, draws: tuple) -> float:
-        """The model time at which the agent starts after a reset with ``draws``."""
+        """The model time at which the agent starts after a reset with ``draws``: the
+        induction's durations, each in whole steps as :meth:`_run` runs them."""
+        dt = self.simulator.dt
         if self.config.induction == "report":
-            return self.config.reset.stimulus_time + draws[3]
-        f = self.config.cross_field
-        return f.s1_time + draws[0] + f.stimulus_time + draws[3]
+            start, durations = 0.0, (self.config.reset.stimulus_time, draws[3])
+        else:
+            f = self.config.cross_field
+            start, durations = f.s1_time, (draws[0], f.stimulus_time, draws[3])
+        return start + sum(round(duration / dt) for duration in durations) * dt
 
     @parallel
     def reset(self, *draws: float) -> np.ndarray | None:
@@ -417,6 +431,7 @@ class ATPTask(Task):
             except SimulationDiverged:
                 return None
             self.snapshots.put(key, self.simulator.u_n().x.array, self.simulator.w_n().x.array)
+            self.simulator.problem.t = self._start_time(key)  # as a restored reset's, exactly
         self.decisions = self.intervals = 0
         return self.integrals(self.simulator.u_n())[1:]
 

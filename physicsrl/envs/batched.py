@@ -40,7 +40,7 @@ import torch
 from mpi4py import MPI
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
-from physicsrl.envs.atp import SHOCK, ATPConfig, ATPTask, ResetSampler
+from physicsrl.envs.atp import SHOCK, WAIT, ATPConfig, ATPTask, ResetSampler
 from physicsrl.envs.members import Members
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
@@ -313,7 +313,11 @@ class BatchedATPEnv(Members):
         without success run up to ``extra_waits`` further intervals in a sub-batch."""
         config = self.config
         index = np.fromiter(actions, dtype=np.int64, count=len(actions))
-        shock = np.fromiter(actions.values(), dtype=np.int64, count=len(actions)) == SHOCK
+        chosen = np.fromiter(actions.values(), dtype=np.int64, count=len(actions))
+        if not np.isin(chosen, (WAIT, SHOCK)).all():
+            bad = chosen[~np.isin(chosen, (WAIT, SHOCK))][0]
+            raise ValueError(f"action must be 0 (wait) or 1 (shock), got {bad}")
+        shock = chosen == SHOCK
         self.decisions[index] += 1
         self.intervals[index] += 1
         rows = self._rows(index)

@@ -61,7 +61,8 @@ class GymnasiumVectorView(gymnasium.vector.VectorEnv):
     Spaces: the single env's, batched (``(N, size)`` observations, ``MultiDiscrete`` actions).
     Autoreset ``SAME_STEP``: an environment whose episode ends restarts within the same
     ``step``; the returned observation is its first one, its last is ``infos["final_obs"][i]``
-    (``infos["_final_obs"]`` marks which). ``infos`` holds ``step``, ``diverged`` and the
+    and its last infos are in ``infos["final_info"]`` (``infos["_final_obs"]`` and
+    ``infos["_final_info"]`` mark which). ``infos`` holds ``step``, ``diverged`` and the
     task's flags as arrays. ``reset(seed=s)`` seeds environment i with
     ``member_seed(s, i)``; ``seed=[s0, s1, ...]`` seeds each.
     """
@@ -99,14 +100,12 @@ class GymnasiumVectorView(gymnasium.vector.VectorEnv):
         rewards = np.array([row["reward"].item() for row in rows], dtype=np.float64)
         terminated = np.array([bool(row["terminated"].item()) for row in rows])
         truncated = np.array([bool(row["truncated"].item()) for row in rows])
-        final = self._stack(rows)[0]
+        final, final_infos = self._stack(rows)
         ended = np.flatnonzero(terminated | truncated).tolist()
         for i, first in self.env.reset_some(ended).items():
             rows[i] = first
         observations, infos = self._stack(rows)
-        if ended:
-            infos["final_obs"] = np.array(
-                [final[i] if i in ended else None for i in range(self.num_envs)], dtype=object
-            )
-            infos["_final_obs"] = np.isin(np.arange(self.num_envs), ended)
+        for i in ended:  # laid out as gymnasium's own vector envs do (its _add_info)
+            final_info = {key: values[i] for key, values in final_infos.items()}
+            infos = self._add_info(infos, {"final_obs": final[i], "final_info": final_info}, i)
         return observations, rewards, terminated, truncated, infos

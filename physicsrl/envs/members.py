@@ -78,9 +78,10 @@ class Members(EnvBase):
 
     def _batch(self, rows: dict[int, dict]) -> TensorDict:
         """Stack per-member values into one tensordict of batch size [N]; members absent from
-        ``rows`` get their latest values (TorchRL's partial-reset update masks them out)."""
+        ``rows`` get their latest values (TorchRL's partial-reset update masks them out). No
+        rows: a reset that names no member, the latest values but the reward."""
         self._last = [rows.get(i, last) for i, last in enumerate(self._last)]
-        keys = next(iter(rows.values())).keys()
+        keys = next(iter(rows.values())).keys() if rows else self._last[0].keys() - {"reward"}
         return TensorDict(
             {key: torch.from_numpy(np.stack([row[key] for row in self._last])) for key in keys},
             self.batch_size,

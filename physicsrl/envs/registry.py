@@ -100,7 +100,11 @@ def load_config(
     groups = {"env": env, "observation": observation, "reward": reward}
     cfg = OmegaConf.create({g: shipped_option(g, n) for g, n in groups.items()})
     cfg.seed = seed
-    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(list(overrides)))
+    changes = OmegaConf.from_dotlist(list(overrides))
+    unknown = sorted(set(changes) - set(cfg))
+    if unknown:
+        raise ValueError(f"overrides: {unknown[0]!r} is not one of {', '.join(cfg)}")
+    return OmegaConf.merge(cfg, changes)
 
 
 def shipped_option(group: str, option: str):
