@@ -29,7 +29,6 @@ from physicsrl.config import (
     Exploration,
     LossConfig,
     Network,
-    OptimConfig,
     Storage,
     TargetConfig,
     TargetKind,
@@ -277,13 +276,10 @@ def make_target_updater(loss_module: DQNLoss, target: TargetConfig):
     return HardUpdate(loss_module, value_network_update_interval=target.period)
 
 
-def make_optimizer(loss_module: nn.Module, optim: OptimConfig, lr: float) -> torch.optim.Optimizer:
-    """Adam over the trainable parameters of the loss (the target network is not trainable),
-    at ``optim.lr``, or at ``lr`` (the agent's) when that is None."""
+def make_optimizer(loss_module: nn.Module, lr: float, weight_decay: float) -> torch.optim.Optimizer:
+    """Adam over the trainable parameters of the loss (the target network is not trainable)."""
     return torch.optim.Adam(
-        [p for p in loss_module.parameters() if p.requires_grad],
-        lr=lr if optim.lr is None else optim.lr,
-        weight_decay=optim.weight_decay,
+        [p for p in loss_module.parameters() if p.requires_grad], lr=lr, weight_decay=weight_decay
     )
 
 

@@ -159,8 +159,11 @@ class CollectorConfig:
         integer("collector.frames_per_env", self.frames_per_env, 0)
 
     def frames(self, environments: int) -> int:
-        """Transitions per batch for a job of ``environments`` environments."""
-        return self.frames_per_env * environments if self.frames_per_env else self.frames_per_batch
+        """Transitions per batch for a job of ``environments`` environments: TorchRL's
+        collector rounds ``frames_per_batch`` up to a whole number of steps of them all."""
+        if self.frames_per_env:
+            return self.frames_per_env * environments
+        return -(-self.frames_per_batch // environments) * environments
 
 
 @dataclass
@@ -277,6 +280,11 @@ class TrainConfig:
         if self.resume not in (None, True, False) and not isinstance(self.resume, str):
             raise ValueError(f"resume must be true, false or a run directory, got {self.resume!r}")
         check_seeds(self.seed, self.iterations, self.eval.seeds)
+
+    @property
+    def learning_rate(self) -> float:
+        """``optim.lr``, or the agent's ``agent.lr`` when that is null."""
+        return self.agent.lr if self.optim.lr is None else self.optim.lr
 
 
 @dataclass

@@ -165,7 +165,9 @@ class Dojo:
         self.q_network = q_network
         self.loss = builders.make_loss(self.q_network, env, config.loss)
         self.target_updater = builders.make_target_updater(self.loss, config.loss.target)
-        self.optimizer = builders.make_optimizer(self.loss, config.optim, config.agent.lr)
+        self.optimizer = builders.make_optimizer(
+            self.loss, config.learning_rate, config.optim.weight_decay
+        )
         self.log_dir = None if log_dir is None else Path(log_dir)
         scratch = None if self.log_dir is None else self.log_dir / "buffer"
         self.replay_buffer = builders.make_buffer(config.buffer, scratch)
@@ -185,6 +187,7 @@ class Dojo:
             else Checkpoints(self.log_dir / "checkpoints", config.checkpoint.keep)
         )
         self.writer = None
+        self._cost_writers: dict = {}  # the evaluations' cost axes (_open_logs)
         self._stop_reason: str | None = None
         self._saved_iteration = -1  # the iteration of the last checkpoint written or loaded
         self._checkpoint_failed = False
@@ -284,7 +287,8 @@ class Dojo:
                 self.frames_per_batch,
             )
         if self.writer is not None:
-            self.writer.flush()
+            for writer in (self.writer, *self._cost_writers.values()):
+                writer.flush()
         return self.summary()
 
     # the steps ----------------------------------------------------------------------------
@@ -451,8 +455,21 @@ class Dojo:
         extra: dict = {}
         self.checkpoint(extra).load(path, map_location="cpu")
         self.history[:] = [self._in_order(row) for row in self.history]
+        self._apply_settings()
         log.info("resumed from %s at %s", path, self._position())
         return extra
+
+    def _apply_settings(self) -> None:
+        """Give the settings that the loaded state holds this config's values (a resume with
+        other settings runs with them): Adam's learning rate and weight decay, the loss's
+        discount, the exploration's epsilons (its current epsilon goes on from the state)."""
+        config = self.config
+        for group in self.optimizer.param_groups:
+            group["lr"], group["weight_decay"] = config.learning_rate, config.optim.weight_decay
+        self.loss.value_estimator.gamma.fill_(config.loss.gamma)
+        greedy = self.exploration[-1]
+        greedy.eps_init.fill_(config.agent.exploration.eps_init)
+        greedy.eps_end.fill_(config.agent.exploration.eps_end)
 
     def _in_order(self, row: dict) -> dict:
         """An evaluation row restored from JSON (its keys sorted) in :meth:`evaluate`'s order:
@@ -476,10 +493,24 @@ class Dojo:
             return
         from torch.utils.tensorboard import SummaryWriter
 
-        # purge_step drops events a killed run wrote after its last checkpoint
-        self.writer = SummaryWriter(
-            str(self.log_dir / "tensorboard"), purge_step=self.counters.iteration + 1
-        )
+        # purge_step drops the events that a killed run wrote after its last checkpoint. It
+        # applies to every tag of a directory, so each step axis has its own: the iterations
+        # here, each cost axis of the evaluations in a subdirectory.
+        directory = self.log_dir / "tensorboard"
+        self.writer = SummaryWriter(str(directory), purge_step=self.counters.iteration + 1)
+        wall_s = sum(self.counters.time_s.values())
+        self._cost_writers = {
+            axis: SummaryWriter(str(directory / axis), purge_step=step + 1)
+            for axis, step in self._cost_steps(self.counters.frames, wall_s).items()
+        }
+
+    def _cost_steps(self, frames: int, wall_s: float) -> dict[str, int]:
+        """The steps of the evaluations' cost axes: env steps, wall and core seconds."""
+        return {
+            "eval_by_env_steps": frames,
+            "eval_by_wall_s": round(wall_s),
+            "eval_by_core_s": round(wall_s * self.cores),
+        }
 
     def _log_iteration(self, frames, collect_s, losses, returns) -> None:
         if self.writer is None:
@@ -502,17 +533,13 @@ class Dojo:
         text = " ".join(f"{k} {v:.4g}" for k, v in row.items() if k not in counters)
         log.info("eval at iteration %d (%d frames): %s", row["iteration"], row["frames"], text)
         if self.writer is not None:
-            axes = {
-                "eval": row["iteration"],
-                "eval_by_env_steps": row["frames"],
-                "eval_by_wall_s": round(row["wall_s"]),
-                "eval_by_core_s": round(row["wall_s"] * self.cores),
-            }
+            costs = self._cost_steps(row["frames"], row["wall_s"])
             for key, value in row.items():
                 if key not in counters:
                     name = "success_rate" if key == "success" else key
-                    for axis, step in axes.items():
-                        self.writer.add_scalar(f"{axis}/{name}", value, step)
+                    self.writer.add_scalar(f"eval/{name}", value, row["iteration"])
+                    for axis, step in costs.items():
+                        self._cost_writers[axis].add_scalar(f"{axis}/{name}", value, step)
         if self.log_dir is not None:
             write_csv(self.log_dir / "eval.csv", self.history)
 

@@ -158,21 +158,24 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     summary["wall_s"] = time.perf_counter() - started  # this command's (total_s: the run's)
     summary["resumed_from"] = None if resume is None else str(resume)
     summary["ranks"], summary["environments"] = ranks, n_environments(env)  # for core-hours
-    table = []
+    table, stopped = [], dojo.stopped
     if dojo.history:  # a stop request skips the baselines: it should end quickly
         counters = ("iteration", "frames", "wall_s")
         greedy = {k: v for k, v in dojo.history[-1].items() if k not in counters}
         table = [{"policy": "greedy DQN", **greedy}]
-        if config.eval.baselines and not dojo.stopped:
-            policies = baselines(env, config, config.eval.seeds)
-            table += compare(env, policies, config.eval.seeds, dojo.action_counts)[1]
+        if config.eval.baselines and not stopped:
+            try:
+                policies = baselines(env, config, config.eval.seeds)
+                table += compare(env, policies, config.eval.seeds, dojo.action_counts)[1]
+            except KeyboardInterrupt:  # Ctrl-C after training: the summary, without them
+                stopped = summary["baselines"] = "received SIGINT"
     report = format_summary(summary, table, log_dir, task_of(env))
     print(report, flush=True)
     (log_dir / "summary.txt").write_text(report + "\n")
     (log_dir / "summary.json").write_text(
         json.dumps({"summary": summary, "table": table}, indent=2, default=str)
     )
-    return dojo.stopped
+    return stopped
 
 
 def n_environments(env) -> int:
@@ -232,6 +235,8 @@ def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task |
             f"held-out seeds, mean per episode (the greedy policy of iteration {evaluated}):"
         )
         lines.append(format_table(rounded(table)))
+        if summary.get("baselines"):
+            lines.append(f"baselines not run: {summary['baselines']} after training had ended")
         if task is not None:
             lines.extend(task.scores({row["policy"]: row["return"] for row in table}))
     lines.append(f"run directory: {log_dir}")

@@ -108,12 +108,14 @@ def test_a_task_outside_the_package_trains_and_evaluates_from_the_command_line(t
     assert "no training episode ended" in result.stdout  # +experiment=thermostat sets 20 each
     # seed 1 seeded the run's training batch 1: the table does not call the seeds held out
     evaluate = [str(bin_dir / "physicsrl-eval"), f"run={run}", "seeds=[1,1000000000]"]
-    evaluate += ["gif=false", "curve=false", f"hydra.run.dir={tmp_path / 'eval'}"]
+    evaluate += ["gif=false", f"hydra.run.dir={tmp_path / 'eval'}"]
     result = subprocess.run(evaluate, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     assert "greedy DQN" in result.stdout and "heater off" in result.stdout
     assert "warning: seeds [1] seeded this run's training batches" in result.stdout
     assert "2 seeds, mean per episode" in result.stdout
+    # the curve is of the run's own seeds: these seeds' baselines are not drawn beside it
+    assert "(no baselines: these seeds or settings are not the run's)" in result.stdout
 
 
 # a `physicsrl-train` or `physicsrl-bench` command written in a document or a config comment:

@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -128,7 +129,6 @@ def test_training_goes_on_from_a_training_seed_after_an_evaluation():
     draws would otherwise draw held-out episodes, or never the pool). The learning rate is
     the agent's unless ``optim.lr`` is set."""
     from physicsrl import config as c
-    from physicsrl.builders import make_optimizer
 
     config = c.TrainConfig(
         seed=3,
@@ -142,8 +142,16 @@ def test_training_goes_on_from_a_training_seed_after_an_evaluation():
     assert [row["iteration"] for row in dojo.history] == [2]
     assert dojo.env.rng.bit_generator.seed_seq.entropy == c.train_seed(3, 2)
     assert dojo.optimizer.param_groups[0]["lr"] == 3e-4
-    optimizer = make_optimizer(dojo.loss, c.OptimConfig(lr=1e-2), lr=3e-4)
-    assert optimizer.param_groups[0]["lr"] == 1e-2
+    assert replace(config, optim=c.OptimConfig(lr=1e-2)).learning_rate == 1e-2
+
+
+def test_a_batch_is_a_whole_number_of_steps_of_every_environment():
+    """TorchRL's collector rounds ``frames_per_batch`` up to a multiple of the environments;
+    the Dojo's batch (its counts, its warning) is that number."""
+    from physicsrl.config import CollectorConfig
+
+    assert [CollectorConfig(frames_per_batch=8).frames(n) for n in (1, 3, 6)] == [8, 9, 12]
+    assert CollectorConfig(frames_per_env=5).frames(3) == 15
 
 
 def train_toy_chain(config, iterations: int, log_dir: Path | None = None):
@@ -167,7 +175,8 @@ def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
     """A run whose last iteration is checkpointed in the loop (4, every 2) but not evaluated
     there (every 3): the final evaluation's row is in the last checkpoint as well as in
     ``eval.csv``, so a resumed run keeps it, its columns in the same order (a JSON round trip
-    sorts them)."""
+    sorts them); a resume with another learning rate, discount or final epsilon runs with
+    them, not with the values that the loaded state holds."""
     from physicsrl import config as c
     from physicsrl.checkpoint import Checkpoints, read
     from physicsrl.dojo import Dojo
@@ -180,9 +189,17 @@ def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
     )
     dojo = train_toy_chain(config, 4, log_dir=tmp_path)
     checkpoints = Checkpoints(tmp_path / "checkpoints", keep=3)
-    resumed = Dojo(dojo.q_network, dojo.env, config)
+    changed = replace(  # settings that the loaded state holds: they take effect
+        config,
+        agent=c.DQNAgent(lr=3e-4, exploration=c.Exploration(eps_end=0.2)),
+        loss=c.LossConfig(gamma=0.5),
+    )
+    resumed = Dojo(dojo.q_network, dojo.env, changed)
     resumed.load_checkpoint(checkpoints.latest())
     assert [list(row) for row in resumed.history] == [list(row) for row in dojo.history]
+    assert resumed.optimizer.param_groups[0]["lr"] == 3e-4
+    assert float(resumed.loss.value_estimator.gamma) == 0.5
+    assert float(resumed.exploration[-1].eps_end) == pytest.approx(0.2)
     assert [p.name for p in checkpoints.paths()] == [checkpoint_name(i) for i in (2, 4)]
     stored = read(checkpoints.latest(), ["history", "counters"])
     assert [row["iteration"] for row in stored["history"]] == [3, 4]
@@ -387,9 +404,18 @@ def test_mpi_run_writes_checkpoints_events_and_log_only_in_the_leader_run_dir(re
         "eval_by_core_s": [round(float(r["wall_s"]) * 2) for r in rows],
     }
     for axis, steps in axes.items():
-        assert [e.step for e in events.Scalars(f"{axis}/return")] == steps, axis
+        assert cost_axis_steps(run_dir, axis) == steps, axis
     state = final_state(run_dir)
     assert state["counters"]["iteration"] == ITERATIONS
+
+
+def cost_axis_steps(run_dir: Path, axis: str) -> list[int]:
+    """The steps of the TensorBoard points of ``<axis>/return`` (in ``tensorboard/<axis>``)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir / "tensorboard" / axis))
+    events.Reload()
+    return [event.step for event in events.Scalars(f"{axis}/return")]
 
 
 def start_and_wait_for(arguments, cwd: Path, checkpoint: Path) -> subprocess.Popen:
@@ -436,8 +462,8 @@ def test_one_sigint_to_mpiexec_stops_guarded_training_cleanly(tmp_path):
 
 def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
     """SIGKILL after a checkpoint, resume; SIGTERM that run (it checkpoints and stops), resume
-    again to the end: counters, evaluations, networks, optimizer and buffer equal the
-    uninterrupted run's."""
+    again to the end: counters, evaluations (TensorBoard's too), networks, optimizer and
+    buffer equal the uninterrupted run's."""
     _, reference_dir, _ = reference
     run_dir = tmp_path / "run"
     checkpoints = run_dir / "checkpoints"
@@ -476,6 +502,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(reference, tmp_path):
         uninterrupted["counters"][k] for k in counters
     ]
     assert timeless(resumed["history"]) == timeless(uninterrupted["history"])  # same numbers
+    steps = [cost_axis_steps(d, "eval_by_env_steps") for d in (run_dir, reference_dir)]
+    assert steps[0] == steps[1]  # TensorBoard's points by env steps: none lost, none twice
     header = [(d / "eval.csv").read_text().splitlines()[0] for d in (run_dir, reference_dir)]
     assert header[0] == header[1]  # the same columns in the same order
     for key, value in uninterrupted["q_network"].items():
@@ -549,6 +577,7 @@ def test_eval_command_tables_a_trained_run(reference, tmp_path):
     assert "10 held-out seeds, mean per episode" in result.stdout
     for name in ("eval.csv", "eval_summary.csv", "learning_curve.png"):
         assert (out / name).exists(), name
+    assert "no baselines" not in result.stdout  # the run's own seeds: the bars are drawn
     rows = list(csv.DictReader((out / "eval.csv").open()))
     assert [int(row["seed"]) for row in rows] == held_out_seeds(10)
     means = {row["policy"]: row for row in csv.DictReader((out / "eval_summary.csv").open())}

@@ -163,9 +163,13 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
         run_dir = path.parent.parent
         environments = state["extra"].get("environments", 1)
         ranks = learning_curve.job_ranks(run_dir) or environments * train_cfg.mpi.ranks_per_env
-        curve = learning_curve.plot(run_dir, directory / "learning_curve.png", means, ranks)
+        # the bars only where they were measured as the curve was: its seeds, its settings
+        alike = seeds == list(state["extra"]["config"]["eval"]["seeds"]) and not cfg.overrides
+        bars = means if alike else ()
+        curve = learning_curve.plot(run_dir, directory / "learning_curve.png", bars, ranks)
         if curve is not None:
-            print(f"learning curve: {curve}")
+            unlike = "" if alike else " (no baselines: these seeds or settings are not the run's)"
+            print(f"learning curve: {curve}{unlike}")
     succeeded = [r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")]
     seed = int(cfg.gif_seed if cfg.gif_seed is not None else (succeeded or seeds)[0])
     single = env.local_env if isinstance(env, GroupedEnv) else env
