@@ -126,7 +126,12 @@ class TimeProblem:
         self._options = {**defaults, **(petsc_options or {})}
         self._unread = set(petsc_options or ())  # the caller's options no solver part read yet
         self._ksp.setOptionsPrefix(f"physicsrl_time_problem_{next(_prefixes)}_")
-        self._with_options(self._ksp.setFromOptions)
+        try:
+            self._with_options(self._ksp.setFromOptions)
+        except PETSc.Error as error:
+            raise InvalidValue(
+                f"petsc_options: PETSc refused {self._options} (error code {error.ierr})"
+            ) from None
         if self._ksp.getType() != PETSc.KSP.Type.PREONLY:
             self._ksp.setInitialGuessNonzero(True)
 
@@ -135,8 +140,8 @@ class TimeProblem:
 
         PETSc reads them in two places: the solver's types and tolerances when it is
         configured, the inner solvers' (``sub_pc_type`` of block Jacobi, factor packages) when
-        it is set up with its matrix. Both run here; an option of the caller's that neither
-        read is refused, as is one that PETSc rejects (:class:`InvalidValue` naming it).
+        it is set up with its matrix. Both run here; the caller's options that were read are
+        struck from :attr:`_unread`.
         """
         database, prefix = PETSc.Options(), self._ksp.getOptionsPrefix()
         for key, value in self._options.items():
@@ -144,10 +149,6 @@ class TimeProblem:
         try:
             action()
             self._unread -= {key for key in self._unread if database.used(prefix + key)}
-        except PETSc.Error as error:
-            raise InvalidValue(
-                f"petsc_options: PETSc refused {self._options} (error code {error.ierr})"
-            ) from None
         finally:
             for key in self._options:
                 database.delValue(prefix + key)
