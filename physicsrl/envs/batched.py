@@ -314,10 +314,9 @@ class BatchedATPEnv(Members):
         config = self.config
         index = np.fromiter(actions, dtype=np.int64, count=len(actions))
         chosen = np.fromiter(actions.values(), dtype=np.int64, count=len(actions))
-        if not np.isin(chosen, (WAIT, SHOCK)).all():
-            bad = chosen[~np.isin(chosen, (WAIT, SHOCK))][0]
-            raise ValueError(f"action must be 0 (wait) or 1 (shock), got {bad}")
-        shock = chosen == SHOCK
+        shock, bad = chosen == SHOCK, chosen[(chosen != WAIT) & (chosen != SHOCK)]
+        if bad.size:
+            raise ValueError(f"action must be 0 (wait) or 1 (shock), got {bad[0]}")
         self.decisions[index] += 1
         self.intervals[index] += 1
         rows = self._rows(index)

@@ -23,6 +23,7 @@ import ufl
 from dolfinx import cpp, fem
 from mpi4py import MPI
 
+from physicsrl import checks
 from physicsrl.fem.errors import InvalidValue
 
 
@@ -53,10 +54,11 @@ def finite(name: str, value) -> float:
 
 def integer(name: str, value, low: int = 1) -> int:
     """``value`` as an int; :class:`InvalidValue` naming it unless it is an integer >= ``low``
-    (numpy's integers included, ``True`` not)."""
-    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < low:
-        raise InvalidValue(f"{name} must be an integer >= {low}, got {value!r}")
-    return int(value)
+    (:func:`physicsrl.checks.integer`'s rule: numpy's integers included, ``True`` not)."""
+    try:
+        return checks.integer(name, value, low)
+    except ValueError as error:
+        raise InvalidValue(str(error)) from None
 
 
 def all_finite(function: fem.Function) -> bool:

@@ -51,12 +51,9 @@ u, w, h = gather(ms.u_n()), gather(ms.w_n()), gather(heat.u_n())
 if MPI.COMM_WORLD.rank == 0:
     strips = ms._explicit is not None and ms._explicit.grid is not None
     pc = heat.problem._ksp.getPC()
-    blocks = (
-        [f"/{k.getPC().getType()}" for k in pc.getBJacobiSubKSP()[:1]]
-        if pc.getType() == "bjacobi"
-        else []
-    )
-    solver = pc.getType() + "".join(blocks)
+    solver = pc.getType()
+    if solver == "bjacobi":
+        solver += "/" + pc.getBJacobiSubKSP()[0].getPC().getType()
     np.savez(
         sys.argv[1],
         u=u,
