@@ -2,7 +2,8 @@
 
 A rank that ends without a word (``os._exit(0)``, the kernel's OOM killer) runs no handler,
 and MPICH's ``mpiexec`` then kills every other rank at once and returns the status of the first
-process it sees end: 0 for ``os._exit(0)``. So the rank is watched from outside. :func:`guard`,
+process it sees end: 0 for ``os._exit(0)`` (under load it once left the others waiting
+instead). So the rank is watched from outside. :func:`guard`,
 called before MPI starts, forks the process the launcher started: the child returns and runs
 the job; the parent, the guard, keeps the launcher's connection open and waits for it. The job
 marks its end when the interpreter exits (the script's end, ``sys.exit(k)``) and when physicsrl
