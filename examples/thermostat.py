@@ -37,8 +37,9 @@ from physicsrl.envs import (
 )
 from physicsrl.envs.baselines import Constant
 from physicsrl.evaluation import compare
-from physicsrl.fem import HeatEnvironment
+from physicsrl.fem import HeatEnvironment, heat
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows
+from physicsrl.fem.resolution import report
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,7 @@ class Thermostat:
     """The settings of ``env=thermostat`` (the keys of its YAML), checked when built."""
 
     mesh: SquareMesh = SquareMesh(cells=16, extent=1.0)
-    dt: float = 0.02
+    dt: float = 0.005
     interval: float = 0.1  # time between decisions
     heat: float = 40.0  # f when the heater is on
     max_steps: int = 20
@@ -71,6 +72,10 @@ class ThermostatTask(Task):
         self.config, self.max_steps, self.observation = config, config.max_steps, observation
         domain = config.mesh.create(coordinator.comm)
         self.simulator = HeatEnvironment(coordinator, domain, dt=config.dt, u_D=0.0)
+        # How well mesh and dt resolve the start's decay, at the first ten decisions
+        report(
+            heat.resolution(self.simulator, config.mesh.extent, config.interval * np.arange(1, 11))
+        )
         self.register_coordinator(coordinator)
         V = self.simulator.V
         self.integrals = WeightedIntegrals(V, np.vstack([form_rows(V, [1.0]), observation.rows(V)]))

@@ -13,6 +13,7 @@ from physicsrl.envs import ATPReward, HeatStop, exact_optimum, load_config, make
 from physicsrl.envs.baselines import Constant, HeatOptimal
 from physicsrl.envs.registry import shipped_option
 from physicsrl.evaluation import run_episode
+from physicsrl.fem.heat import transient_integral
 from physicsrl.tables import mean_metrics
 
 SMALL_HEAT = ["env.mesh.cells=16"]
@@ -107,6 +108,26 @@ def test_heat_exact_optimum_matches_brute_force_and_beats_baselines():
         expected = np.mean([optimum.best_return[level + 5] for level in levels])
         assert means["optimal"] == pytest.approx(expected, rel=1e-5)
         assert means["optimal"] >= max(means["stop"], means["never"])
+
+
+def test_heat_optimum_under_refinement_is_the_exact_series_one():
+    """The heat task's results at two resolutions, against the exact solution: the integral
+    of u at the k-th decision is 16 u_D + (level - u_D) S(t_k)^2 (physicsrl.fem.heat), which
+    gives each level's optimal return. At the default (50 x 50, dt = 0.01) and refined
+    (100 x 100, dt = 0.0025) the exact optimum stops where the series' does, and its mean
+    return is within 0.05 of the series', the refined one at least 3x closer."""
+    times = 0.1 * np.arange(11)
+    transient = np.concatenate([[16.0], transient_integral(times[1:], 2.0)])
+    levels = np.arange(-5, 6)
+    returns = 16 + (levels[:, None] - 1) * transient - 0.1 * np.arange(11)
+    errors = []
+    for overrides in ([], ["env.mesh.cells=100", "env.dt=0.0025"]):
+        env = make_env(load_config("heat", "quadrants", "heat_stop", overrides, 0), Coordinator())
+        with env.task.coordinator:
+            optimum = exact_optimum(env)
+        np.testing.assert_array_equal(optimum.best_stop, returns.argmax(axis=1))
+        errors.append(abs(optimum.mean - returns.max(axis=1).mean()))
+    assert errors[0] < 0.05 and errors[0] / errors[1] > 3
 
 
 def test_same_seed_same_episode():

@@ -9,6 +9,10 @@ on stop or after ``max_steps`` steps. Events for the reward: ``advanced``, ``end
 
 The dynamics are deterministic given the level, so :func:`exact_optimum` finds the optimal
 expected return by trying every stopping time for every level.
+
+When built, the task prints how well its mesh and ``dt`` resolve the solution at its first ten
+decision times (:func:`physicsrl.fem.heat.resolution`: the part of u that the level sets,
+against the exact series; later the transient has decayed) and warns above 5%.
 """
 
 from __future__ import annotations
@@ -22,8 +26,9 @@ from physicsrl.checks import integer, interval, number, positive
 from physicsrl.coordinated import Coordinator, parallel
 from physicsrl.envs.observations import Observation
 from physicsrl.envs.task import TASKS, SquareMesh, Task, Transition
-from physicsrl.fem import HeatEnvironment, SimulationDiverged
+from physicsrl.fem import HeatEnvironment, SimulationDiverged, heat
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows
+from physicsrl.fem.resolution import report
 
 STOP, ADVANCE = 0, 1
 # The exact optimum (the baselines) simulates every stopping time of every level: levels x
@@ -110,6 +115,8 @@ class HeatTask(Task):
             u_D=config.boundary_value,
             f=config.source,
         )
+        decisions = config.advance_time * np.arange(1, min(config.max_steps, 10) + 1)
+        report(heat.resolution(self.simulator, config.mesh.extent, decisions))
         self.register_coordinator(coordinator)
         V = self.simulator.V
         # Row 0: the integral over the domain; then the observation's rows.

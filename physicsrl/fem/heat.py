@@ -16,9 +16,30 @@ Implicit Euler with time step :math:`\Delta t`, in weak form: find :math:`u^{n+1
 Units are those of the caller (the equation has unit diffusivity). Subclasses add the agent's
 side (observations, actions, rewards); this class owns the simulation and exposes it through
 ``@parallel`` methods, so that the leader drives all ranks.
+
+How well a mesh and ``dt`` resolve the solution (:func:`resolution`): a constant initial
+value :math:`c + d` gives the solution from :math:`c` plus :math:`d\, z`, the transient
+
+.. math::
+
+    \partial_t z = \nabla^2 z, \qquad z = 0 \text{ on } \partial\Omega, \qquad z = 1
+    \text{ at } t = 0 .
+
+On the square :math:`[-a, a]^2` it separates, and its integral is
+
+.. math::
+
+    \int_\Omega z\, dx = S(t)^2, \qquad
+    S(t) = \sum_{m \text{ odd}} \frac{16 a}{\pi^2 m^2}\, e^{-(m \pi / 2a)^2 t}
+
+(:func:`transient_integral`). The scheme is linear, so the difference of two runs from
+:math:`u_0 = 1` and :math:`u_0 = 0` is its :math:`z_h`, whatever :math:`u_D` and :math:`f`; its
+integral against the exact one measures the error in space and time together.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import ufl
@@ -27,6 +48,7 @@ from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinated, Coordinator, parallel
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows, quadrant_weights
+from physicsrl.fem.resolution import largest_cell_diameter
 from physicsrl.fem.time_problem import TimeProblem
 from physicsrl.fem.values import assign
 
@@ -161,3 +183,80 @@ class HeatEnvironment(Coordinated):
         """Array (4,) of the integral of u over the quadrants around the origin, in the order
         (x<0, y<0), (x>0, y<0), (x<0, y>0), (x>0, y>0)."""
         return self._quadrants(self.problem.u_n)
+
+
+MAX_TRANSIENT_ERROR = 0.05
+"""Relative error of the transient's integral above which :class:`HeatResolution` warns."""
+
+
+def transient_integral(t, extent: float, modes: int = 2000) -> np.ndarray:
+    """The exact integral of the transient z (module docstring) over [-extent, extent]^2 at
+    times ``t`` (shape (k,), >= 0), from the first ``modes`` odd terms of S(t) (at t = 0 they
+    miss about 4 extent / (pi^2 modes) of S(0) = 2 extent; nothing measurable from t = 0.01)."""
+    m = np.arange(1, 2 * modes, 2)[:, None]
+    decay = np.exp(-((m * np.pi / (2 * extent)) ** 2) * np.atleast_1d(t))
+    return (16 * extent / (np.pi**2 * m**2) * decay).sum(axis=0) ** 2
+
+
+@dataclass(frozen=True)
+class HeatResolution:
+    """A mesh and time step against the heat equation's transient: the largest cell diameter
+    ``h``, ``dt``, the number of ``cells``, and the signed relative ``errors`` (shape (k,)) of
+    the computed integral of the transient against :func:`transient_integral` at ``times``
+    (shape (k,))."""
+
+    cells: int
+    h: float
+    dt: float
+    times: np.ndarray
+    errors: np.ndarray
+
+    @property
+    def error(self) -> float:
+        """The largest relative error in magnitude."""
+        return float(np.abs(self.errors).max())
+
+    @property
+    def warning(self) -> str | None:
+        """The one-line warning if :attr:`error` exceeds :data:`MAX_TRANSIENT_ERROR`."""
+        if self.error <= MAX_TRANSIENT_ERROR:
+            return None
+        return (
+            f"the mesh and time step do not resolve the transient (its integral off by up to "
+            f"{self.error:.0%}, above {MAX_TRANSIENT_ERROR:.0%}): refine env.dt or env.mesh.cells"
+        )
+
+    def __str__(self) -> str:
+        worst = int(np.abs(self.errors).argmax())
+        return (
+            f"resolution: h = {self.h:.3g}, dt = {self.dt:.3g}: the integral of the transient at "
+            f"t = {self.times[0]:.3g} to {self.times[-1]:.3g} is off the exact one by at most "
+            f"{self.errors[worst]:+.2%} (at t = {self.times[worst]:.3g}; {self.cells} cells)"
+        )
+
+
+def resolution(simulator: HeatEnvironment, extent: float, times) -> HeatResolution:
+    """The :class:`HeatResolution` of ``simulator``, whose mesh is the square
+    [-extent, extent]^2, at ``times`` (ascending, > 0, whole numbers of its dt).
+
+    Two runs of its own problem, from u0 = 1 and u0 = 0 (module docstring). Collective: call it
+    on every rank, outside the coordinator's dispatch (at construction, say). It leaves the
+    simulator at u0 = 0 and the last time: set the initial condition and reset afterwards.
+    """
+    problem, comm = simulator.problem, simulator.domain.comm
+    integral = fem.form(problem.u_n * ufl.dx)
+    runs = []
+    for u0 in (1.0, 0.0):
+        problem.set_initial_condition(u0)
+        problem.reset()
+        values = []
+        for t in times:
+            problem.solve(t - problem.t)
+            values.append(comm.allreduce(fem.assemble_scalar(integral), op=MPI.SUM))
+        runs.append(values)
+    times = np.asarray(times, dtype=float)
+    errors = np.subtract(*runs) / transient_integral(times, extent) - 1
+    domain = simulator.domain
+    cells = domain.topology.index_map(domain.topology.dim).size_global
+    dt = float(problem.dt.value)
+    return HeatResolution(cells, largest_cell_diameter(domain), dt, times, errors)

@@ -7,7 +7,8 @@ conduction velocity (CV) a scheme computes depends on h against that width;
 at dt = 0.03 and writes the table :data:`TABLE` (``cv_error.csv`` beside this module, the one
 place the numbers live). :func:`resolution` interpolates it, linearly in
 :math:`\log(h / \text{width})`, clamped to the table's ends; :func:`report` prints it and
-warns when the error is above :data:`MAX_CV_ERROR`.
+warns when the error is above :data:`MAX_CV_ERROR`. The heat equation's counterpart is
+:class:`physicsrl.fem.heat.HeatResolution`; :func:`report` prints either.
 """
 
 from __future__ import annotations
@@ -49,6 +50,17 @@ class Resolution:
     @property
     def mesh(self) -> str:
         return f"{self.cells} cells, h = {self.h:.4g}"
+
+    @property
+    def warning(self) -> str | None:
+        """The one-line warning if the expected CV error exceeds :data:`MAX_CV_ERROR`."""
+        if abs(self.cv_error) <= MAX_CV_ERROR:
+            return None
+        return (
+            f"the mesh does not resolve the front (h/width = {self.ratio:.3g}, expected "
+            f"planar CV error {self.cv_error:+.0%}, above {MAX_CV_ERROR:.0%}): the "
+            "dynamics are numerical; refine the mesh, or set env.model.warn_resolution=false"
+        )
 
     def __str__(self) -> str:
         return (
@@ -96,31 +108,25 @@ def resolution(domain, D: float, tau_in: float, scheme: str) -> Resolution:
 
 
 class ResolutionWarning(UserWarning):
-    """The mesh does not resolve the front: the expected CV error is above
-    :data:`MAX_CV_ERROR`."""
+    """The mesh does not resolve the solution: its expected error is above the bound of the
+    model's resolution class."""
 
 
 _warned = False
 
 
-def report(resolution: Resolution, warn: bool = True) -> None:
-    """Print ``resolution`` on rank 0 of the job (not on the leaders of other environment
-    groups: they simulate the same mesh), and once a :class:`ResolutionWarning` (one line) if
-    its expected CV error exceeds :data:`MAX_CV_ERROR` in magnitude, unless ``warn`` is
-    false."""
+def report(resolution, warn: bool = True) -> None:
+    """Print ``resolution`` (a :class:`Resolution`, or any object with ``__str__`` and a
+    ``warning`` that is None or one line) on rank 0 of the job (not on the leaders of other
+    environment groups: they simulate the same mesh), and once per process a
+    :class:`ResolutionWarning` if it has a warning, unless ``warn`` is false."""
     global _warned
     if MPI.COMM_WORLD.rank != 0:
         return
     print(resolution, flush=True)
-    if warn and not _warned and abs(resolution.cv_error) > MAX_CV_ERROR:
+    if warn and not _warned and resolution.warning:
         _warned = True
-        warnings.warn(
-            f"the mesh does not resolve the front (h/width = {resolution.ratio:.3g}, expected "
-            f"planar CV error {resolution.cv_error:+.0%}, above {MAX_CV_ERROR:.0%}): the "
-            "dynamics are numerical; refine the mesh, or set env.model.warn_resolution=false",
-            ResolutionWarning,
-            stacklevel=2,
-        )
+        warnings.warn(resolution.warning, ResolutionWarning, stacklevel=2)
 
 
 def planar_front_speed(
