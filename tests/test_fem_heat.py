@@ -209,7 +209,7 @@ def test_resolution_report_converges_under_refinement():
     """The report of the heat task's default (50 x 50 P1 triangles, dt = 0.01) at its ten
     decision times is within 1% of the exact transient, dominated by implicit Euler's O(dt)
     error; halving h and quartering dt cuts it at least 3.5-fold. Its line names h, dt and the
-    worst error."""
+    worst error. A mesh that is not the square of the given extent is refused."""
     times = 0.1 * np.arange(1, 11)
     reports = []
     for n, dt in ((50, 0.01), (100, 0.0025)):
@@ -221,3 +221,5 @@ def test_resolution_report_converges_under_refinement():
     assert coarse.warning is None
     assert f"{coarse.errors[np.abs(coarse.errors).argmax()]:+.2%}" in str(coarse)
     assert "h = 0.113, dt = 0.01" in str(coarse) and "\n" not in str(coarse)
+    with pytest.raises(ValueError, match="extent: the mesh is not the square"):
+        resolution(env, 1.0, times)

@@ -47,6 +47,7 @@ from dolfinx import fem, mesh
 from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinated, Coordinator, parallel
+from physicsrl.fem.errors import InvalidValue
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows, quadrant_weights
 from physicsrl.fem.resolution import largest_cell_diameter
 from physicsrl.fem.time_problem import TimeProblem
@@ -243,7 +244,13 @@ def resolution(simulator: HeatEnvironment, extent: float, times) -> HeatResoluti
     on every rank, outside the coordinator's dispatch (at construction, say). It leaves the
     simulator at u0 = 0 and the last time: set the initial condition and reset afterwards.
     """
-    problem, comm = simulator.problem, simulator.domain.comm
+    problem, domain = simulator.problem, simulator.domain
+    comm = domain.comm
+    x = domain.geometry.x[:, :2]
+    bounds = np.concatenate([-x.min(axis=0, initial=np.inf), x.max(axis=0, initial=-np.inf)])
+    comm.Allreduce(MPI.IN_PLACE, bounds, op=MPI.MAX)  # (-x_min, -y_min, x_max, y_max)
+    if not np.allclose(bounds, extent, rtol=1e-12):
+        raise InvalidValue(f"extent: the mesh is not the square [-{extent}, {extent}]^2")
     integral = fem.form(problem.u_n * ufl.dx)
     runs = []
     for u0 in (1.0, 0.0):
@@ -256,7 +263,6 @@ def resolution(simulator: HeatEnvironment, extent: float, times) -> HeatResoluti
         runs.append(values)
     times = np.asarray(times, dtype=float)
     errors = np.subtract(*runs) / transient_integral(times, extent) - 1
-    domain = simulator.domain
     cells = domain.topology.index_map(domain.topology.dim).size_global
     dt = float(problem.dt.value)
     return HeatResolution(cells, largest_cell_diameter(domain), dt, times, errors)
