@@ -2,6 +2,8 @@
 
 import json
 import math
+import subprocess
+import sys
 import time
 
 import dolfinx_solver  # noqa: F401 (loads MPI before dolfinx)
@@ -26,6 +28,7 @@ from physicsrl.envs.baselines import (
     best_single_shock,
 )
 from physicsrl.envs.members import member_seed
+from physicsrl.envs.snapshots import SnapshotCache
 from physicsrl.evaluation import run_episode
 from physicsrl.fem.integrals import WeightedIntegrals
 
@@ -218,6 +221,32 @@ def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
         np.testing.assert_array_equal(loaded.task.reset(*draws[0]), first)
         assert induce / (time.perf_counter() - start) >= 20
         np.testing.assert_array_equal(loaded.task.simulator.w_n().x.array, w)
+
+
+WRITE_SNAPSHOTS = """
+import sys
+import numpy as np
+from mpi4py import MPI
+from physicsrl.envs.snapshots import SnapshotCache
+cache = SnapshotCache(0, sys.argv[1], "settings", MPI.COMM_SELF)
+for i in range(300):
+    u = np.full(20_000, float(i % 4))
+    cache.put((float(i % 4),), u, u + 0.5)
+"""
+
+
+def test_jobs_writing_the_same_snapshots_at_once_leave_whole_files(tmp_path):
+    """Two processes storing the same snapshots in one library (two jobs of a sweep, or two
+    groups of one job) leave readable files (a shared temporary name let one process rename
+    or truncate the other's half-written file: errors and bad CRCs)."""
+    command = [sys.executable, "-c", WRITE_SNAPSHOTS, str(tmp_path)]
+    writers = [subprocess.Popen(command, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    assert [writer.wait(60) for writer in writers] == [0, 0], writers[0].stderr.read()
+    reader = SnapshotCache(0, str(tmp_path), "settings", MPI.COMM_SELF)
+    for key in range(4):
+        u, w = reader.get((float(key),))
+        assert (u == key).all() and (w == key + 0.5).all()
+    assert len(list(tmp_path.glob("*/*.npz"))) == 4  # no temporary file left
 
 
 def test_prefill_and_pool():

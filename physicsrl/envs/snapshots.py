@@ -9,7 +9,8 @@ ahead of time (:meth:`physicsrl.envs.atp.ATPTask.prefill`); beyond ``capacity`` 
 dropped from memory.
 
 On disk (optional, a library shared by the jobs that use the same settings, e.g. a training run
-and its evaluation): every snapshot is written when it is stored, one file per rank,
+and its evaluation): every snapshot is written when it is stored (under a temporary name of
+its own, then renamed: jobs may write the same one at once), one file per rank,
 ``<directory>/atp-<fingerprint>/<key>-rank<r>of<n>.npz``, where the fingerprint hashes the
 settings that define an induced state (mesh, model, induction) and ``<key>`` the draws. A
 snapshot missing from memory is read from disk if every rank finds its file: a library written
@@ -20,6 +21,8 @@ deterministically). The disk library is never pruned.
 from __future__ import annotations
 
 import hashlib
+import os
+import tempfile
 from collections import OrderedDict
 from pathlib import Path
 
@@ -74,9 +77,11 @@ class SnapshotCache:
         path = self._path(key)
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
-            temporary = path.with_suffix(".tmp.npz")
-            np.savez(temporary, u=u, w=w)
-            temporary.replace(path)
+            # a name of its own: jobs sharing the library (and groups of one job, whose ranks
+            # have the same names) may write the same snapshot at once
+            with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as f:
+                np.savez(f, u=u, w=w)
+            os.replace(f.name, path)
         self._remember(key, u, w)
 
     def _remember(self, key: tuple, u: np.ndarray, w: np.ndarray) -> None:
