@@ -170,6 +170,14 @@ def output_dir() -> Path:
     return Path(HydraConfig.get().runtime.output_dir)
 
 
+def sweeping() -> bool:
+    """Whether the current Hydra job is one job of a sweep (``-m``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
 def check_layout(ranks_per_env: int, world_size: int) -> None:
     """ValueError in one line unless ``ranks_per_env`` is a divisor of ``world_size``."""
     if not (isinstance(ranks_per_env, int) and 1 <= ranks_per_env <= world_size):

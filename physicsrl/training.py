@@ -8,7 +8,10 @@ serve the simulation. SIGINT/SIGTERM checkpoint and stop cleanly.
 ``resume=true`` continues the newest run beside this command's run directory, ``resume=<run
 dir>`` that run, from its newest readable checkpoint; the continuation is written into the
 resumed run (checkpoints, events, evaluations, log, summary), and this command's own run
-directory keeps only its config, its log and ``resumed.txt`` naming the run it continued. A
+directory keeps only its config, its log and ``resumed.txt`` naming the run it continued. In a
+sweep (``-m``), ``resume=true`` continues each job's own run directory (give the earlier
+sweep's ``hydra.sweep.dir``), and ``resume=<run dir>`` is refused (every job would continue
+that one run). A
 checkpoint directory that cannot be written, or a resume without a readable checkpoint, is one
 line (exit status 2) before any environment is built.
 """
@@ -35,7 +38,7 @@ from physicsrl.envs.groups import environments
 from physicsrl.envs.members import Members
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
-from physicsrl.launch import output_dir
+from physicsrl.launch import output_dir, sweeping
 from physicsrl.tables import format_table, rounded
 
 log = logging.getLogger("physicsrl.train")
@@ -59,11 +62,11 @@ def train(cfg) -> None:
     if leader:
         try:
             if config.resume not in (None, False):
-                resume_dir = find_run(str(config.resume), run_dir.parent)
+                resume_dir = find_run(resume_request(str(config.resume), run_dir), run_dir.parent)
                 resume = Checkpoints(resume_dir / "checkpoints", 1).newest_readable()
             log_dir = run_dir if resume is None else resume.parent.parent
             Checkpoints(log_dir / "checkpoints", config.checkpoint.keep).check_writable()
-        except OSError as problem:
+        except (OSError, ValueError) as problem:
             error = str(problem)
     resume, error = comm.bcast((resume, error), root=0)
     if error:
@@ -81,6 +84,19 @@ def train(cfg) -> None:
             stopped = train_on_leader(config, env, run_dir, resume)
     if leader and stopped:
         raise SystemExit(130 if "SIGINT" in stopped else 143 if "SIGTERM" in stopped else 1)
+
+
+def resume_request(resume: str, run_dir: Path) -> str:
+    """What to resume (:func:`~physicsrl.checkpoint.find_run`'s ``resume``): in a sweep, each
+    job its own run directory; ValueError for one run directory named for every job."""
+    if not sweeping():
+        return resume
+    if resume.lower() != "true":
+        raise ValueError(
+            f"resume={resume}: in a sweep every job would continue that one run; resume=true "
+            "continues each job's own run (with the earlier sweep's hydra.sweep.dir)"
+        )
+    return str(run_dir)
 
 
 def task_of(env) -> Task | type[Task] | None:
@@ -145,6 +161,7 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
         extra = dojo.load_checkpoint(resume)
         check_environments(extra.get("environments", 1), n_environments(env))
         warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
+    if log_dir != run_dir:
         (run_dir / RESUMED).write_text(
             f"this command resumed {log_dir} from {resume.name}: its checkpoints, events, "
             f"evaluations and summary are written there\n"

@@ -105,7 +105,8 @@ def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
 
 
 def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
-    """The issue's sweep form (agent.lr, here 2 jobs): own run dirs, Adam at each job's lr."""
+    """The issue's sweep form (agent.lr, here 2 jobs): own run dirs, Adam at each job's lr;
+    resumed as a sweep, each job continues its own run; one run named for all is refused."""
     sweep = tmp_path / "sweep"
     result = subprocess.run(
         [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, f"hydra.sweep.dir={sweep}"],
@@ -129,6 +130,32 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     rows = list(csv.DictReader(table.open()))
     assert [row["overrides"].split()[0] for row in rows] == ["agent.lr=0.001", "agent.lr=0.0003"]
     assert all(float(row["train_s"]) > 0 for row in rows)
+
+    # resume=true continues each job's own run (it continued the newest job's, from every job)
+    resumed = subprocess.run(
+        [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, "iterations=4", "resume=true"]
+        + [f"hydra.sweep.dir={sweep}"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    for job, lr in (("0", 1e-3), ("1", 3e-4)):
+        state = read(checkpoint_file(sweep / job), ["counters", "optimizer"])
+        assert state["counters"]["iteration"] == 4
+        assert state["optimizer"]["param_groups"][0]["lr"] == lr
+        assert not (sweep / job / "resumed.txt").exists()
+    one_run = subprocess.run(
+        [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, f"resume={sweep / '0'}"]
+        + [f"hydra.sweep.dir={tmp_path / 'other'}"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+    )
+    assert one_run.returncode == 2
+    assert one_run.stderr.strip().endswith("(with the earlier sweep's hydra.sweep.dir)")
 
 
 def test_collect_tables_jobs_without_baselines_or_evaluations(tmp_path):
