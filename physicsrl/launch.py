@@ -19,6 +19,7 @@ import re
 import shutil
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import NoReturn
@@ -36,6 +37,20 @@ def refuse(message: str) -> NoReturn:
     if launched_rank() == 0:
         print(f"error: {message}", file=sys.stderr)
     raise SystemExit(2)
+
+
+@dataclass(frozen=True)
+class Job:
+    """Where each job of a command runs: on ``ranks`` MPI ranks, on this machine or not (Hydra's
+    Slurm launcher submits each job of a sweep to run elsewhere)."""
+
+    ranks: int
+    here: bool = True
+
+    @classmethod
+    def local(cls) -> Job:
+        """This process's job: the ranks its MPI launcher started (1 without one)."""
+        return cls(launched_size() or 1)
 
 
 def launched_size() -> int | None:

@@ -178,7 +178,7 @@ def check_of(command: str):
         return train.check_task
     if command == "eval":
         return evaluate.check
-    return lambda cfg: bench.check(cfg, command[6:])
+    return lambda cfg, job: bench.check(cfg, job, command[6:])
 
 
 @pytest.fixture(scope="module")

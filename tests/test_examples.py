@@ -150,6 +150,7 @@ def test_every_command_line_in_the_docs_is_a_valid_config():
     from physicsrl.cli.bench import check as check_bench
     from physicsrl.cli.command import sweep_jobs, validate
     from physicsrl.cli.train import check_run
+    from physicsrl.launch import Job
 
     commands = documented_commands()
     assert len(commands) >= 30, commands  # the extraction still finds them
@@ -160,12 +161,12 @@ def test_every_command_line_in_the_docs_is_a_valid_config():
             if command == "bench":
                 if words:
                     check = functools.partial(check_bench, name=words[0])
-                    validate(f"bench_{words[0]}", words[1:], check)
+                    validate(f"bench_{words[0]}", words[1:], check, Job.local())
                 continue
             sweep = "-m" in words
             words = [w for w in words if w != "-m"]
             for job in sweep_jobs(words) if sweep else [words]:
-                validate("train", job, check_run)
+                validate("train", job, lambda cfg, _: check_run(cfg), Job.local())
         except ValueError as error:
             refused.append(f"{document}: physicsrl-{command} {arguments}: {error}")
     assert not refused, "\n".join(refused)

@@ -104,6 +104,29 @@ def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
     assert "export SLURM_MPI_TYPE=pmix" in hydra
 
 
+def test_a_slurm_sweep_is_checked_against_its_jobs_not_the_submitting_process(capsys, monkeypatch):
+    """The README's large-mesh Slurm sweep (8 groups of 8 of the job's 64 ranks) and the GPU
+    preset pass the checks on this 1-rank CPU machine; 8 ranks per group of a 60-rank job do
+    not; a submitting command under several ranks is refused (each rank would submit)."""
+    from physicsrl.cli.command import validate_or_exit
+    from physicsrl.cli.train import check_task
+
+    slurm = ["-m", "+cluster=slurm", "hydra.launcher.tasks_per_node=64"]
+    validate_or_exit(
+        "train", [*slurm, "mpi.ranks_per_env=8", "+experiment=atp_resolved"], check_task
+    )
+    validate_or_exit("train", [*slurm, "+experiment=atp_resolved_timing_batched"], check_task)
+    for overrides, message in (
+        ([*slurm[:2], "hydra.launcher.tasks_per_node=60", "mpi.ranks_per_env=8"], "job's 60 ranks"),
+        (slurm, "drop mpi.ranks and mpiexec"),
+    ):
+        if message.startswith("drop"):
+            monkeypatch.setenv("PMI_SIZE", "2")
+        with pytest.raises(SystemExit) as exit_:
+            validate_or_exit("train", overrides, check_task)
+        assert exit_.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     """The issue's sweep form (agent.lr, here 2 jobs): own run dirs, Adam at each job's lr;
     resumed as a sweep, each job continues its own run; one run named for all is refused."""

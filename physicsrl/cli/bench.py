@@ -18,7 +18,7 @@ import sys
 
 from physicsrl.bench import SETTINGS
 from physicsrl.guard import guard
-from physicsrl.launch import check_layout, launched_size, output_dir, refuse, relaunch, run_hydra
+from physicsrl.launch import check_layout, output_dir, refuse, relaunch, run_hydra
 from physicsrl.tables import format_table, write_csv
 
 BENCHMARKS = {
@@ -56,7 +56,7 @@ def check_settings(cfg, settings: dict[str, tuple[type | tuple[str, ...], float 
             raise ValueError(f"{key}={value}: must be {what}{bound}")
 
 
-def check(cfg, name: str) -> None:
+def check(cfg, job, name: str) -> None:
     """:func:`check_settings` of benchmark ``name``, the settings that must agree (ms: more
     steps than the first call's, which is timed apart; groups: the layout of the job's ranks
     and no reset within the timed decisions), and the ATP task it builds from its
@@ -68,7 +68,7 @@ def check(cfg, name: str) -> None:
             "call is timed apart from the others)"
         )
     if name == "groups":
-        check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
+        check_layout(cfg.mpi.ranks_per_env, job.ranks)
     if "overrides" in cfg:
         from physicsrl.checks import build, plain
         from physicsrl.envs import TASKS, load_config
@@ -111,7 +111,7 @@ def main() -> None:
     guard()
     from physicsrl.cli.command import validate_or_exit
 
-    validate_or_exit(f"bench_{name}", overrides, lambda cfg: check(cfg, name))
+    validate_or_exit(f"bench_{name}", overrides, lambda cfg, job: check(cfg, job, name))
     module = importlib.import_module(f"physicsrl.bench.{name}")
 
     def task(cfg) -> None:

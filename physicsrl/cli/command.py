@@ -18,7 +18,7 @@ from typing import NoReturn
 from omegaconf import OmegaConf
 
 from physicsrl.guard import guard
-from physicsrl.launch import refuse, relaunch, run_hydra
+from physicsrl.launch import Job, refuse, relaunch, run_hydra
 
 MULTIRUN = {"-m", "--multirun"}
 
@@ -71,8 +71,9 @@ def compose(config_name: str, overrides: list[str]):
 
 def validate_or_exit(config_name: str, overrides: list[str], check: Callable) -> None:
     """Compose the config of the command line, run every range check of its schema and
-    ``check(cfg)`` on this rank, for the job or, with ``-m``, every job of the sweep (Hydra's
-    basic sweeper: the product of the comma-separated values) before any starts; nothing with
+    ``check(cfg, job)`` on this rank (``job``: where it runs, :func:`job_place`), for the job
+    or, with ``-m``, every job of the sweep (Hydra's basic sweeper: the product of the
+    comma-separated values) before any starts; nothing with
     Hydra's print-only flags. On error the leader prints one line (naming the sweep's job) and
     every rank exits with status 2 (all ranks see the same config, so no rank waits)."""
     flags = {o for o in overrides if o.startswith("-")}
@@ -81,9 +82,10 @@ def validate_or_exit(config_name: str, overrides: list[str], check: Callable) ->
     arguments = [o for o in overrides if o not in flags]
     try:
         jobs = sweep_jobs(arguments) if flags else [arguments]
+        place = job_place(config_name, jobs[0])
         for number, job in enumerate(jobs, 1):
             try:
-                validate(config_name, job, check)
+                validate(config_name, job, check, place)
             except ValueError as error:
                 if not flags:
                     raise
@@ -101,20 +103,54 @@ def refuse_config(error: ValueError | str) -> NoReturn:
     refuse(f"bad config: {' '.join(str(message).split())}")
 
 
-def validate(config_name: str, overrides: list[str], check: Callable) -> None:
-    """Compose, type (a config with a schema) and ``check`` the config of ``overrides``;
-    ValueError with one line."""
+def validate(config_name: str, overrides: list[str], check: Callable, place: Job) -> None:
+    """Compose, type (a config with a schema) and ``check(cfg, place)`` the config of
+    ``overrides``, a job that runs at ``place``; ValueError with one line."""
     from physicsrl.config import typed
 
     try:
         cfg = compose(config_name, overrides)
         if dataclasses.is_dataclass(OmegaConf.get_type(cfg)):
             typed(cfg)
-        check(cfg)
+        check(cfg, place)
     except ValueError:
         raise
     except Exception as error:  # noqa: BLE001 - OmegaConf's errors name the key
         raise ValueError(one_line(error)) from error
+
+
+def job_place(config_name: str, overrides: list[str]) -> Job:
+    """Where the job of ``overrides`` will run: here (:meth:`Job.local`), or, with Hydra's
+    Slurm launcher (``+cluster=slurm``), elsewhere on its nodes x tasks_per_node ranks.
+    ValueError for a submitit launcher under several ranks: each would submit the sweep."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    from physicsrl.config import register
+
+    if not any("cluster" in o or "launcher" in o for o in overrides):
+        return Job.local()
+    register()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="physicsrl.conf", version_base=None):
+            cfg = hydra_compose(config_name, overrides=overrides, return_hydra_config=True)
+    except Exception as error:  # noqa: BLE001 - Hydra and OmegaConf raise many kinds
+        raise ValueError(one_line(error)) from error
+    finally:
+        GlobalHydra.instance().clear()
+    launcher = cfg.hydra.launcher
+    target = str(launcher.get("_target_", ""))
+    if "submitit" in target and Job.local().ranks > 1:
+        raise ValueError(
+            f"{target.rsplit('.', 1)[-1]} (hydra/launcher) submits the sweep from one process: "
+            "drop mpi.ranks and mpiexec (every rank would submit it); each job's ranks are "
+            "hydra.launcher.tasks_per_node"
+        )
+    if not target.endswith("SlurmLauncher"):
+        return Job.local()
+    return Job(int(launcher.nodes) * int(launcher.tasks_per_node), here=False)
 
 
 def sweep_jobs(overrides: list[str]) -> list[list[str]]:

@@ -19,14 +19,14 @@ from physicsrl.cli import command
 from physicsrl.launch import output_dir
 
 
-def check(cfg) -> None:
+def check(cfg, job) -> None:
     import importlib.util
 
     from omegaconf import OmegaConf
 
-    from physicsrl.launch import check_layout, launched_size
+    from physicsrl.launch import check_layout
 
-    check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
+    check_layout(cfg.mpi.ranks_per_env, job.ranks)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
     if not Path(str(cfg.run)).expanduser().exists():

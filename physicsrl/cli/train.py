@@ -15,16 +15,18 @@ from __future__ import annotations
 from physicsrl.cli import command
 
 
-def check_task(cfg) -> None:
-    """The layout of environments over the job's ranks and the backend's (a group's replicas
-    run on one rank, a CUDA device is there), then :func:`check_run`."""
+def check_task(cfg, job) -> None:
+    """The layout of environments over the ranks of the job (a :class:`~physicsrl.launch.Job`)
+    and the backend's (a group's replicas run on one rank, a CUDA device is there, if the job
+    runs here), then :func:`check_run`."""
     from omegaconf import OmegaConf
 
-    from physicsrl.launch import check_backend, check_layout, launched_size
+    from physicsrl.launch import check_backend, check_layout
 
-    check_layout(cfg.mpi.ranks_per_env, launched_size() or 1)
+    check_layout(cfg.mpi.ranks_per_env, job.ranks)
     model = OmegaConf.select(cfg, "env.model") or {}
-    check_backend(model.get("backend"), cfg.mpi.ranks_per_env, model.get("device"))
+    device = model.get("device") if job.here else None
+    check_backend(model.get("backend"), cfg.mpi.ranks_per_env, device)
     check_run(cfg)
 
 
