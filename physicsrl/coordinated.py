@@ -46,8 +46,12 @@ from __future__ import annotations
 import collections
 import functools
 import hashlib
+import inspect
+import math
+import operator
 import os
 import pickle
+import reprlib
 import struct
 import sys
 import threading
@@ -79,6 +83,7 @@ INLINE_BYTES = 240
 _HEADER = struct.Struct("<4i")  # route, flags, payload length, sequence number
 _STOP, _FAIL, _EXIT = -1, -2, -3  # _EXIT carries the leader's exit status in the flags
 _PICKLE, _CLOUDPICKLE, _DEFINE = 1, 2, 4
+_SERIALISED = _PICKLE | _CLOUDPICKLE
 _TAG, _DONE_TAG, _FAILED_TAG = 17, 18, 19
 # A failing follower waits this long for word that the leader failed in the same call, or,
 # under abort_on_error, for the leader's abort, before it reports its own failure.
@@ -171,6 +176,11 @@ class abort_on_error:  # noqa: N801 (used as a context manager, like contextlib 
         return False
 
 
+def _seconds(value: Any) -> bool:
+    """Whether ``value`` is a finite real number (not a bool)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def _serialise(args: tuple, kwargs: dict) -> tuple[bytes, int]:
     """Pickle call arguments, falling back to cloudpickle; raise TypeError if neither can."""
     try:
@@ -182,7 +192,8 @@ def _serialise(args: tuple, kwargs: dict) -> tuple[bytes, int]:
     try:
         return cloudpickle.dumps((args, kwargs), protocol=5), _CLOUDPICKLE
     except Exception as error:
-        raise TypeError(f"arguments {args!r}, {kwargs!r} cannot be serialised: {error}") from None
+        shown = reprlib.repr((args, kwargs))  # bounded: arguments can be huge or deeply nested
+        raise TypeError(f"arguments {shown} cannot be serialised: {error}") from None
 
 
 class Coordinator:
@@ -216,6 +227,15 @@ class Coordinator:
         check: bool | None = None,
         timeout: float | None = None,
     ):
+        if not isinstance(comm, MPI.Comm):
+            raise CoordinationError(f"comm={comm!r}: must be an MPI communicator")
+        for name, seconds in (("spin_s", spin_s), ("max_sleep_s", max_sleep_s)):
+            if not _seconds(seconds) or seconds < 0:
+                raise CoordinationError(f"{name}={seconds!r}: must be a number of seconds >= 0")
+        if check is not None and not isinstance(check, bool):
+            raise CoordinationError(f"check={check!r}: must be True, False or None")
+        if timeout is not None and not (_seconds(timeout) and timeout > 0):
+            raise CoordinationError(f"timeout={timeout!r}: must be a number of seconds > 0")
         self.comm = comm
         self.rank = comm.rank
         self.size = comm.size
@@ -241,8 +261,6 @@ class Coordinator:
             self.timeout = timeout_from_environment() if timeout is None else timeout
         except ValueError as error:
             raise CoordinationError(str(error)) from None
-        if self.timeout is not None and not self.timeout > 0:
-            raise CoordinationError(f"timeout={self.timeout}: must be a number of seconds > 0")
         self._watchdog: _Watchdog | None = None  # the leader's, while the watchdog is on
         self._done: MPI.Prequest | None = None  # a follower's report of a finished call
         self._done_sequence = np.zeros(1, dtype=np.int32)
@@ -255,7 +273,7 @@ class Coordinator:
         self._local = False  # inside the with-block on a single rank
         self._inside = False
         self._next_namespace = 0
-        self._routes: dict[tuple[Hashable, str], int] = {}  # leader: (namespace, name) -> id
+        self._routes: dict[tuple[Hashable, str | Callable], int] = {}  # leader: -> route id
         self._handlers: list[tuple[Any, Callable]] = []  # follower: id -> (object, function)
         self._message = bytearray(_HEADER.size + INLINE_BYTES)
         self._view = memoryview(self._message)
@@ -298,7 +316,11 @@ class Coordinator:
                     "inside 'with coordinator:'"
                 )
             if self.rank == 0 and self.size > 1:
-                self.broadcast(obj._namespace, function.__name__, args, kwargs)
+                named = getattr(type(obj), function.__name__, None)
+                by_name = getattr(named, "__wrapped__", named) is function
+                self.broadcast(
+                    obj._namespace, function.__name__ if by_name else function, args, kwargs
+                )
                 if self._watchdog is not None:
                     self._watchdog.started(self._sequence, obj, function)
                     try:
@@ -308,9 +330,15 @@ class Coordinator:
         return self.execute(obj, function, args, kwargs)
 
     def broadcast(
-        self, namespace: Hashable, name: str, args: tuple = (), kwargs: dict | None = None
+        self,
+        namespace: Hashable,
+        method: str | Callable,
+        args: tuple = (),
+        kwargs: dict | None = None,
     ) -> None:
-        """Send the call ``objects[namespace].name(*args, **kwargs)`` to every follower.
+        """Send the call ``method(objects[namespace], *args, **kwargs)`` to every follower:
+        ``method`` the name of a method of the object's class, or a function (sent by
+        reference or by value: an override's base method, a free function, a lambda).
 
         Leader only. Arguments are serialised before anything is sent, so an argument that
         cannot be serialised raises here and the followers stay in step.
@@ -322,13 +350,13 @@ class Coordinator:
         payload = b""
         if args or kwargs:
             payload, flags = _serialise(args, kwargs or {})
-        route = self._routes.get((namespace, name))
+        route = self._routes.get((namespace, method))
         if route is None:
             route = len(self._routes)
-            definition = pickle.dumps((namespace, name), protocol=5)
+            definition, _ = _serialise((namespace, method), {})
             payload = len(definition).to_bytes(4, "little") + definition + payload
             flags |= _DEFINE
-            self._routes[(namespace, name)] = route
+            self._routes[(namespace, method)] = route
         self._send(route, flags, payload)
         self.broadcast_s += time.perf_counter() - started
 
@@ -391,20 +419,14 @@ class Coordinator:
             try:
                 if flags & _DEFINE:
                     n = int.from_bytes(payload[:4], "little")
-                    namespace, name = pickle.loads(payload[4 : 4 + n])
+                    (namespace, method), _ = pickle.loads(payload[4 : 4 + n])
                     payload = payload[4 + n :]
                     obj = self.objects[namespace]
-                    function = getattr(type(obj), name)
+                    function = getattr(type(obj), method) if isinstance(method, str) else method
                     self._handlers.append((obj, getattr(function, "__wrapped__", function)))
                 obj, function = self._handlers[route]
-                if flags & _PICKLE:
-                    args, kwargs = pickle.loads(payload)
-                elif flags & _CLOUDPICKLE:
-                    import cloudpickle
-
-                    args, kwargs = cloudpickle.loads(payload)
-                else:
-                    args, kwargs = (), {}
+                # cloudpickle's payloads load with pickle too
+                args, kwargs = pickle.loads(payload) if flags & _SERIALISED else ((), {})
                 self.execute(obj, function, args, kwargs)
             except CollectiveError:
                 pass  # the leader raises it too, and its caller decides
@@ -500,7 +522,14 @@ class Coordinator:
         # Persistent requests: a third of the cost of a fresh Send/Irecv per message.
         self._sending = [self._channel.Send_init(self._message, c, _TAG) for c in self._children]
         if self.size > 1:
-            self.timeout = self._channel.bcast(self.timeout, 0)
+            self.timeout, self.check = self._channel.bcast((self.timeout, self.check), 0)
+            multiple = MPI.Query_thread() >= MPI.THREAD_MULTIPLE
+            if self.timeout is not None and not self._channel.allreduce(multiple, op=MPI.LAND):
+                self._close()
+                raise CoordinationError(
+                    "the watchdog (timeout, PHYSICSRL_TIMEOUT) needs MPI initialised with "
+                    "THREAD_MULTIPLE on every rank"
+                )
         if self.timeout is not None and self.size > 1:
             if self.rank == 0:
                 self._watchdog = _Watchdog(self._channel, self.timeout)
@@ -556,7 +585,7 @@ def _exit_status(code: Any) -> int:
     """The process exit status of ``SystemExit(code)``, as Python computes it."""
     if code is None:
         return 0
-    return code if isinstance(code, int) else 1
+    return code & 0xFF if isinstance(code, int) else 1  # the OS keeps the low 8 bits
 
 
 class _Watchdog:
@@ -570,8 +599,6 @@ class _Watchdog:
     """
 
     def __init__(self, channel: MPI.Comm, timeout: float):
-        if MPI.Query_thread() < MPI.THREAD_MULTIPLE:
-            raise CoordinationError("the watchdog needs MPI initialised with THREAD_MULTIPLE")
         self.channel = channel
         self.timeout = timeout
         self.interval = min(timeout / 4, 0.25)
@@ -672,6 +699,12 @@ def parallel(method: Callable) -> Callable:
     themselves); the leader gets the return value.
     """
 
+    if inspect.isgeneratorfunction(method) or inspect.iscoroutinefunction(method):
+        raise TypeError(
+            f"@parallel {method.__qualname__}: a generator or coroutine runs only where it is "
+            "iterated; return a list instead"
+        )
+
     @functools.wraps(method)
     def wrapper(self, *args, **kwargs):
         coordinator = self._coordinator
@@ -712,6 +745,10 @@ def random(comm: MPI.Comm = MPI.COMM_WORLD, rng: np.random.Generator | None = No
 
 
 def randint(comm: MPI.Comm, a: int, b: int, rng: np.random.Generator | None = None) -> int:
-    """An integer uniform in [a, b] (both included) drawn on the leader, shared (collective)."""
+    """An integer uniform in [a, b] (both included) drawn on the leader, shared (collective).
+    ``a`` and ``b`` are integers with a <= b (checked on every rank: call it alike everywhere)."""
+    a, b = operator.index(a), operator.index(b)
+    if a > b:
+        raise ValueError(f"randint: a = {a} must be <= b = {b}")
     value = int((rng or np.random.default_rng()).integers(a, b + 1)) if comm.rank == 0 else None
     return comm.bcast(value, 0)

@@ -134,12 +134,12 @@ def test_idle_follower_does_not_spin_a_core(mpi):
 
 
 @guards
-@pytest.mark.parametrize("status", [0, 3])
+@pytest.mark.parametrize("status", [0, 3, 2**40 + 3])  # the OS keeps the low 8 bits
 def test_leader_sys_exit_is_every_rank_exit_status(mpi, guard, ranks, status):
     result = mpi(
         ranks, *guard, "tests/mpi_scripts/coord_exit.py", f"exit-{status}", timeout=30, check=False
     )
-    assert result.returncode == status, result.stderr
+    assert result.returncode == status & 0xFF, result.stderr
     assert "Traceback" not in result.stderr and "finished" not in result.stderr, result.stderr
 
 
@@ -177,6 +177,40 @@ def test_watchdog_aborts_a_call_that_some_ranks_never_finish(mpi, guard, ranks):
 def test_watchdog_lets_calls_that_finish_run_to_the_end(mpi):
     result = mpi(2, "tests/mpi_scripts/coord_exit.py", "watched", env={"PHYSICSRL_TIMEOUT": "1"})
     assert result.stderr.count("finished") == 2, result.stderr
+
+
+def test_watchdog_without_thread_multiple_is_refused_on_every_rank(mpi):
+    """The watchdog's thread needs THREAD_MULTIPLE: without it every rank refuses at the
+    start of the with-block (the leader alone refused, and the followers waited forever)."""
+    env = {"PHYSICSRL_TIMEOUT": "5", "MPI4PY_RC_THREAD_LEVEL": "funneled"}
+    start = time.perf_counter()
+    result = mpi(2, "tests/mpi_scripts/coord_exit.py", "watched", timeout=30, check=False, env=env)
+    assert result.returncode != 0 and time.perf_counter() - start < 20
+    assert "needs MPI initialised with THREAD_MULTIPLE" in result.stderr, result.stderr
+
+
+def test_bad_settings_and_arguments_are_refused_naming_them():
+    from mpi4py import MPI
+
+    for settings, named in [
+        ({"max_sleep_s": -1}, "max_sleep_s=-1"),
+        ({"spin_s": "0.1"}, "spin_s='0.1'"),
+        ({"check": "no"}, "check='no'"),
+        ({"timeout": float("inf")}, "timeout=inf"),
+        ({"comm": None}, "comm=None"),
+    ]:
+        with pytest.raises(CoordinationError, match=re.escape(named)):
+            Coordinator(**settings)
+    with pytest.raises(ValueError, match="a = 5 must be <= b = 1"):
+        randint(MPI.COMM_WORLD, 5, 1)
+    with pytest.raises(TypeError):
+        randint(MPI.COMM_WORLD, 1.5, 3)  # returned 1
+    with pytest.raises(TypeError, match="runs only where it is iterated"):
+
+        class Stream(Coordinated):
+            @parallel
+            def values(self):
+                yield 1
 
 
 def test_bad_timeout_is_refused(monkeypatch):
