@@ -181,6 +181,21 @@ def _seconds(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
+def _identity(obj: Any, function: Callable) -> str | Callable:
+    """What names ``function`` to the followers: its name where ``obj``'s class resolves it to
+    ``function``, else the parallel method of a base class that wraps it (sent by reference),
+    else ``function`` itself (a free function, a lambda)."""
+    name = function.__name__
+    named = getattr(type(obj), name, None)
+    if getattr(named, "__wrapped__", named) is function:
+        return name
+    for owner in type(obj).__mro__:
+        attribute = vars(owner).get(name)
+        if getattr(attribute, "__wrapped__", None) is function:
+            return attribute
+    return function
+
+
 def _serialise(args: tuple, kwargs: dict) -> tuple[bytes, int]:
     """Pickle call arguments, falling back to cloudpickle; raise TypeError if neither can."""
     try:
@@ -316,11 +331,7 @@ class Coordinator:
                     "inside 'with coordinator:'"
                 )
             if self.rank == 0 and self.size > 1:
-                named = getattr(type(obj), function.__name__, None)
-                by_name = getattr(named, "__wrapped__", named) is function
-                self.broadcast(
-                    obj._namespace, function.__name__ if by_name else function, args, kwargs
-                )
+                self.broadcast(obj._namespace, _identity(obj, function), args, kwargs)
                 if self._watchdog is not None:
                     self._watchdog.started(self._sequence, obj, function)
                     try:
