@@ -41,12 +41,17 @@ def row(job: Path) -> dict:
     return result
 
 
+def job_order(job: Path) -> tuple[bool, int, str]:
+    """Hydra's job numbers in numeric order (0, 1, ..., 10), then any other names."""
+    return not job.name.isdigit(), int(job.name) if job.name.isdigit() else 0, job.name
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sweep", type=Path, help="the sweep directory (hydra.sweep.dir)")
     parser.add_argument("--csv", type=Path, help="also write the table here")
     args = parser.parse_args()
-    jobs = sorted((p.parent for p in args.sweep.glob("*/summary.json")), key=lambda p: p.name)
+    jobs = sorted((p.parent for p in args.sweep.glob("*/summary.json")), key=job_order)
     if not jobs:
         sys.exit(f"error: no job with a summary.json under {args.sweep}")
     rows = [row(job) for job in jobs]

@@ -182,9 +182,9 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
 
 
 def test_collect_tables_jobs_without_baselines_or_evaluations(tmp_path):
-    """``collect.py`` on three job directories: with baselines (the best one named), without
+    """``collect.py`` on job directories: with baselines (the best one named), without
     (``eval.baselines=false``, the ATP presets': empty cells), and stopped before any
-    evaluation (no greedy return)."""
+    evaluation (no greedy return); rows in the jobs' numeric order."""
     tables = {
         "0": [
             {"policy": "greedy DQN", "return": 4.0, "success": 0.5},
@@ -193,6 +193,7 @@ def test_collect_tables_jobs_without_baselines_or_evaluations(tmp_path):
         ],
         "1": [{"policy": "greedy DQN", "return": 3.0, "success": 1.0}],
         "2": [],
+        "10": [{"policy": "greedy DQN", "return": 5.0, "success": 1.0}],
     }
     for job, table in tables.items():
         (tmp_path / job / ".hydra").mkdir(parents=True)
@@ -210,6 +211,7 @@ def test_collect_tables_jobs_without_baselines_or_evaluations(tmp_path):
         ("seed=0", "4.0", "always", "2.5"),
         ("seed=1", "3.0", "", ""),
         ("seed=2", "", "", ""),
+        ("seed=10", "5.0", "", ""),  # in job order (it came after job 1)
     ]
 
 
