@@ -16,25 +16,38 @@ from physicsrl.launch import refuse
 
 class WritableRunDirectory(Callback):
     """Hydra callback (``hydra.callbacks`` in ``common.yaml``): before Hydra writes its files,
-    the leader checks that the run (or sweep) directory can be written; if not, every rank
-    ends with status 2 and one line naming the directory, instead of the leader failing in
-    Hydra's log setup while the followers wait for it."""
+    the leader checks that the run (or sweep) directory can be written, and, for a new
+    training run (``resume`` unset), that it holds no other run's checkpoints (Hydra would
+    write into it, and its checkpoints would mix with the new run's); if not, every rank ends
+    with status 2 and one line naming the directory, instead of the leader failing in Hydra's
+    log setup while the followers wait for it."""
 
     def on_run_start(self, config, **kwargs) -> None:
-        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir)
+        new_run = "resume" in config and not config.resume
+        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir, new_run and RUN)
 
     def on_multirun_start(self, config, **kwargs) -> None:
-        agree_directory_is_writable("hydra.sweep.dir", config.hydra.sweep.dir)
+        new_runs = "resume" in config and not config.resume
+        agree_directory_is_writable("hydra.sweep.dir", config.hydra.sweep.dir, new_runs and JOBS)
 
 
-def agree_directory_is_writable(key: str, directory: str) -> None:
-    """The leader creates ``directory`` and writes a byte there; every rank learns the outcome
-    (collective) and refuses to go on if it failed."""
+RUN, JOBS = "checkpoints/ckpt-*", "*/checkpoints/ckpt-*"  # a run's, a sweep's checkpoints
+
+
+def agree_directory_is_writable(key: str, directory: str, taken: str | bool = False) -> None:
+    """The leader creates ``directory`` and writes a byte there, and looks for files matching
+    ``taken`` (a glob pattern, if any) in it; every rank learns the outcome (collective) and
+    refuses to go on if the write failed or such a file is there."""
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
     problem = None
-    if comm.rank == 0:
+    if comm.rank == 0 and taken and next(Path(directory).glob(taken), None):
+        problem = (
+            f"{key}={directory}: it holds another run's checkpoints; resume=true continues it, "
+            "a new run needs another directory"
+        )
+    elif comm.rank == 0:
         probe = Path(directory) / ".physicsrl-write-test"
         try:
             probe.parent.mkdir(parents=True, exist_ok=True)
@@ -44,7 +57,8 @@ def agree_directory_is_writable(key: str, directory: str) -> None:
                 os.fsync(stream.fileno())  # a full disk fails here, not at close
             probe.unlink()
         except OSError as error:
-            problem = error.strerror or str(error)
+            reason = error.strerror or str(error)
+            problem = f"{key}={directory}: cannot write the run directory there ({reason})"
     problem = comm.bcast(problem, 0)
     if problem is not None:
-        refuse(f"{key}={directory}: cannot write the run directory there ({problem})")
+        refuse(problem)

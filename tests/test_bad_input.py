@@ -246,3 +246,24 @@ def test_real_commands_print_one_line_once_and_every_rank_ends(tmp_path, checkpo
         assert process.returncode == 2, err
         assert out == "" and len(err.splitlines()) == 1 and named in err, err
         assert not list(cwd.iterdir())  # no run directory
+
+
+def test_a_sweep_is_validated_with_its_config_s_params_and_globs(tmp_path, capsys):
+    """``hydra.sweeper.params`` set by an experiment's YAML join the command line's sweep in
+    the checks (its bad job ran after the good one); ``glob(...)`` of a group expands (it was
+    refused: 'ConfigLoader is not set')."""
+    from physicsrl.cli.command import sweep_jobs, validate_or_exit
+    from physicsrl.cli.train import check_task
+
+    experiment = tmp_path / "conf" / "experiment" / "sweep.yaml"
+    experiment.parent.mkdir(parents=True)
+    experiment.write_text(
+        "# @package _global_\nhydra:\n  sweeper:\n    params:\n      iterations: 2,-5\n"
+    )
+    overrides = ["-m", f"hydra.searchpath=[file://{tmp_path / 'conf'}]", "+experiment=sweep"]
+    with pytest.raises(SystemExit) as exit_:
+        validate_or_exit("train", overrides, check_task)
+    assert exit_.value.code == 2
+    assert "got -5 (sweep job 2 of 2: iterations=-5" in capsys.readouterr().err
+    jobs = sweep_jobs(["env=glob(he*)", "seed=0,1"])
+    assert jobs == [["env=heat", "seed=0"], ["env=heat", "seed=1"]]

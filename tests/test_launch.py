@@ -156,6 +156,27 @@ def test_a_sweep_directory_that_cannot_be_written_is_one_line(tmp_path):
     assert len(result.stderr.splitlines()) == 1
 
 
+def test_a_new_run_refuses_a_directory_that_holds_another_runs_checkpoints(tmp_path):
+    """A new training run or sweep into a directory with checkpoints ends every rank in one
+    line before Hydra writes there (the runs' checkpoints mixed: an evaluation then read the
+    other run's policy); resume=true is how to continue it."""
+    train = str(BIN / "physicsrl-train")
+    for directory, where in ((tmp_path / "run", "."), (tmp_path / "sweep", "1")):
+        checkpoints = directory / where / "checkpoints"
+        checkpoints.mkdir(parents=True)
+        (checkpoints / "ckpt-000000000002.torchrl").write_text("")
+    runs = [
+        ("hydra.run.dir", [f"hydra.run.dir={tmp_path / 'run'}", "mpi.ranks=2"]),
+        ("hydra.sweep.dir", ["-m", "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}"]),
+    ]
+    for key, overrides in runs:
+        result = run([train, "iterations=1", "env.mesh.cells=8", *overrides], cwd=tmp_path)
+        assert result.returncode == 2, result.stderr
+        [line] = result.stderr.splitlines()
+        assert line.startswith(f"error: {key}=") and "holds another run's checkpoints" in line
+    assert not (tmp_path / "run" / ".hydra").exists()
+
+
 def test_print_only_flags_print_once_under_two_ranks(tmp_path):
     bench = str(BIN / "physicsrl-bench")
     config = run([bench, "ping", "--cfg", "job", "mpi.ranks=2"], cwd=tmp_path, timeout=60)

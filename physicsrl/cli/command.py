@@ -21,6 +21,7 @@ from physicsrl.guard import guard
 from physicsrl.launch import Job, refuse, relaunch, run_hydra
 
 MULTIRUN = {"-m", "--multirun"}
+CONFIGS = "pkg://physicsrl.conf"  # the shipped configs (a user's come by hydra.searchpath)
 
 
 def one_line(error: BaseException) -> str:
@@ -61,7 +62,7 @@ def compose(config_name: str, overrides: list[str]):
     ]
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_module(config_module="physicsrl.conf", version_base=None):
+        with initialize_config_module(config_module=CONFIGS[6:], version_base=None):
             return hydra_compose(config_name=config_name, overrides=job_overrides)
     except Exception as error:  # noqa: BLE001 - Hydra and OmegaConf raise many kinds
         raise ValueError(one_line(error)) from error
@@ -81,7 +82,7 @@ def validate_or_exit(config_name: str, overrides: list[str], check: Callable) ->
         return
     arguments = [o for o in overrides if o not in flags]
     try:
-        jobs = sweep_jobs(arguments) if flags else [arguments]
+        jobs = sweep_jobs(arguments, config_name) if flags else [arguments]
         place = job_place(config_name, jobs[0])
         for number, job in enumerate(jobs, 1):
             try:
@@ -119,28 +120,33 @@ def validate(config_name: str, overrides: list[str], check: Callable, place: Job
         raise ValueError(one_line(error)) from error
 
 
-def job_place(config_name: str, overrides: list[str]) -> Job:
-    """Where the job of ``overrides`` will run: here (:meth:`Job.local`), or, with Hydra's
-    Slurm launcher (``+cluster=slurm``), elsewhere on its nodes x tasks_per_node ranks.
-    ValueError for a submitit launcher under several ranks: each would submit the sweep."""
+def hydra_config(config_name: str, overrides: list[str]):
+    """The config of ``overrides`` (no sweeps) with its ``hydra`` section; ValueError with
+    one line."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
     from physicsrl.config import register
 
-    if not any("cluster" in o or "launcher" in o for o in overrides):
-        return Job.local()
     register()
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_module(config_module="physicsrl.conf", version_base=None):
-            cfg = hydra_compose(config_name, overrides=overrides, return_hydra_config=True)
+        with initialize_config_module(config_module=CONFIGS[6:], version_base=None):
+            return hydra_compose(config_name, overrides=overrides, return_hydra_config=True)
     except Exception as error:  # noqa: BLE001 - Hydra and OmegaConf raise many kinds
         raise ValueError(one_line(error)) from error
     finally:
         GlobalHydra.instance().clear()
-    launcher = cfg.hydra.launcher
+
+
+def job_place(config_name: str, overrides: list[str]) -> Job:
+    """Where the job of ``overrides`` will run: here (:meth:`Job.local`), or, with Hydra's
+    Slurm launcher (``+cluster=slurm``), elsewhere on its nodes x tasks_per_node ranks.
+    ValueError for a submitit launcher under several ranks: each would submit the sweep."""
+    if not any("cluster" in o or "launcher" in o for o in overrides):
+        return Job.local()
+    launcher = hydra_config(config_name, overrides).hydra.launcher
     target = str(launcher.get("_target_", ""))
     if "submitit" in target and Job.local().ranks > 1:
         raise ValueError(
@@ -153,13 +159,23 @@ def job_place(config_name: str, overrides: list[str]) -> Job:
     return Job(int(launcher.nodes) * int(launcher.tasks_per_node), here=False)
 
 
-def sweep_jobs(overrides: list[str]) -> list[list[str]]:
-    """The overrides of each job of a sweep, as Hydra's basic sweeper will launch them."""
+def sweep_jobs(overrides: list[str], config_name: str | None = None) -> list[list[str]]:
+    """The overrides of each job of a sweep, as Hydra's basic sweeper will launch them: with
+    ``config_name``, the config's ``hydra.sweeper.params`` (an experiment's YAML may set
+    them) before the command line's; ``glob(...)`` of a group lists its shipped options."""
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra._internal.utils import create_config_search_path
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
+    loader = ConfigLoaderImpl(config_search_path=create_config_search_path(CONFIGS))
+    parser = OverridesParser.create(config_loader=loader)
     try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
+        parsed = parser.parse_overrides(overrides)
+        if config_name is not None:
+            fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
+            params = hydra_config(config_name, fixed).hydra.sweeper.params or {}
+            parsed = parser.parse_overrides([*(f"{k}={v}" for k, v in params.items()), *overrides])
         return BasicSweeper.split_arguments(parsed, None)[0]
     except Exception as error:  # noqa: BLE001 - the parser raises several kinds
         raise ValueError(one_line(error)) from error
