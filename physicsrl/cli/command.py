@@ -21,7 +21,7 @@ from physicsrl.guard import guard
 from physicsrl.launch import Job, refuse, relaunch, run_hydra
 
 MULTIRUN = {"-m", "--multirun"}
-CONFIGS = "pkg://physicsrl.conf"  # the shipped configs (a user's come by hydra.searchpath)
+CONFIG_MODULE = "physicsrl.conf"  # the shipped configs (a user's come by hydra.searchpath)
 
 
 def one_line(error: BaseException) -> str:
@@ -46,8 +46,10 @@ def one_line(error: BaseException) -> str:
     return first if first and first != message and len(chain) == 1 else message
 
 
-def compose(config_name: str, overrides: list[str]):
-    """The job config (no Hydra section), or ValueError with a one-line message."""
+def compose(config_name: str, overrides: list[str], hydra: bool = False):
+    """The job config (no Hydra section: the command line's Hydra settings are left out, but
+    where to find configs), or with ``hydra`` the whole config (``overrides`` without
+    sweeps); ValueError with a one-line message."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
@@ -55,15 +57,17 @@ def compose(config_name: str, overrides: list[str]):
     from physicsrl.config import register
 
     register()
-    job_overrides = [  # Hydra's own settings, but where to find configs (a user's tasks)
-        o
-        for o in overrides
-        if o.startswith("hydra.searchpath") or not o.lstrip("+~").startswith(("hydra.", "hydra/"))
-    ]
+    if not hydra:
+        overrides = [
+            o
+            for o in overrides
+            if o.startswith("hydra.searchpath")
+            or not o.lstrip("+~").startswith(("hydra.", "hydra/"))
+        ]
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_module(config_module=CONFIGS[6:], version_base=None):
-            return hydra_compose(config_name=config_name, overrides=job_overrides)
+        with initialize_config_module(config_module=CONFIG_MODULE, version_base=None):
+            return hydra_compose(config_name, overrides=overrides, return_hydra_config=hydra)
     except Exception as error:  # noqa: BLE001 - Hydra and OmegaConf raise many kinds
         raise ValueError(one_line(error)) from error
     finally:
@@ -120,33 +124,13 @@ def validate(config_name: str, overrides: list[str], check: Callable, place: Job
         raise ValueError(one_line(error)) from error
 
 
-def hydra_config(config_name: str, overrides: list[str]):
-    """The config of ``overrides`` (no sweeps) with its ``hydra`` section; ValueError with
-    one line."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    from physicsrl.config import register
-
-    register()
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_module(config_module=CONFIGS[6:], version_base=None):
-            return hydra_compose(config_name, overrides=overrides, return_hydra_config=True)
-    except Exception as error:  # noqa: BLE001 - Hydra and OmegaConf raise many kinds
-        raise ValueError(one_line(error)) from error
-    finally:
-        GlobalHydra.instance().clear()
-
-
 def job_place(config_name: str, overrides: list[str]) -> Job:
     """Where the job of ``overrides`` will run: here (:meth:`Job.local`), or, with Hydra's
     Slurm launcher (``+cluster=slurm``), elsewhere on its nodes x tasks_per_node ranks.
     ValueError for a submitit launcher under several ranks: each would submit the sweep."""
     if not any("cluster" in o or "launcher" in o for o in overrides):
         return Job.local()
-    launcher = hydra_config(config_name, overrides).hydra.launcher
+    launcher = compose(config_name, overrides, hydra=True).hydra.launcher
     target = str(launcher.get("_target_", ""))
     if "submitit" in target and Job.local().ranks > 1:
         raise ValueError(
@@ -168,13 +152,15 @@ def sweep_jobs(overrides: list[str], config_name: str | None = None) -> list[lis
     from hydra._internal.utils import create_config_search_path
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    loader = ConfigLoaderImpl(config_search_path=create_config_search_path(CONFIGS))
+    loader = ConfigLoaderImpl(
+        config_search_path=create_config_search_path(f"pkg://{CONFIG_MODULE}")
+    )
     parser = OverridesParser.create(config_loader=loader)
     try:
         parsed = parser.parse_overrides(overrides)
         if config_name is not None:
             fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
-            params = hydra_config(config_name, fixed).hydra.sweeper.params or {}
+            params = compose(config_name, fixed, hydra=True).hydra.sweeper.params or {}
             parsed = parser.parse_overrides([*(f"{k}={v}" for k, v in params.items()), *overrides])
         return BasicSweeper.split_arguments(parsed, None)[0]
     except Exception as error:  # noqa: BLE001 - the parser raises several kinds
