@@ -131,13 +131,12 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     """The issue's sweep form (agent.lr, here 2 jobs): own run dirs, Adam at each job's lr;
     resumed as a sweep, each job continues its own run; one run named for all is refused."""
     sweep = tmp_path / "sweep"
-    result = subprocess.run(
-        [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, f"hydra.sweep.dir={sweep}"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=tmp_path,
-    )
+
+    def train_sweep(*overrides):
+        command = [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, *overrides]
+        return subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+
+    result = train_sweep(f"hydra.sweep.dir={sweep}")
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
     for job, lr in (("0", 1e-3), ("1", 3e-4)):
@@ -155,28 +154,14 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     assert all(float(row["train_s"]) > 0 for row in rows)
 
     # resume=true continues each job's own run (it continued the newest job's, from every job)
-    resumed = subprocess.run(
-        [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, "iterations=4", "resume=true"]
-        + [f"hydra.sweep.dir={sweep}"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=tmp_path,
-    )
+    resumed = train_sweep("iterations=4", "resume=true", f"hydra.sweep.dir={sweep}")
     assert resumed.returncode == 0, resumed.stderr
     for job, lr in (("0", 1e-3), ("1", 3e-4)):
         state = read(checkpoint_file(sweep / job), ["counters", "optimizer"])
         assert state["counters"]["iteration"] == 4
         assert state["optimizer"]["param_groups"][0]["lr"] == lr
         assert not (sweep / job / "resumed.txt").exists()
-    one_run = subprocess.run(
-        [TRAIN, "-m", "agent.lr=1e-3,3e-4", *TINY, f"resume={sweep / '0'}"]
-        + [f"hydra.sweep.dir={tmp_path / 'other'}"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=tmp_path,
-    )
+    one_run = train_sweep(f"resume={sweep / '0'}", f"hydra.sweep.dir={tmp_path / 'other'}")
     assert one_run.returncode == 2
     assert one_run.stderr.strip().endswith("(with the earlier sweep's hydra.sweep.dir)")
 
