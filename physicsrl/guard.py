@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import atexit
 import ctypes
+import importlib.util
 import os
 import runpy
 import signal
@@ -122,6 +123,8 @@ def run(arguments: list[str]) -> NoReturn:
         refuse(usage)
     if arguments[0] != "-m" and not os.path.isfile(arguments[0]):
         refuse(f"no script {arguments[0]}")
+    if arguments[0] == "-m" and not _module_exists(arguments[1]):
+        refuse(f"no module {arguments[1]}")
     guard()
     if arguments[0] == "-m":
         sys.argv = arguments[1:]
@@ -131,6 +134,14 @@ def run(arguments: list[str]) -> NoReturn:
         sys.path.insert(0, os.path.dirname(os.path.abspath(arguments[0])))
         runpy.run_path(arguments[0], run_name="__main__")
     raise SystemExit(0)
+
+
+def _module_exists(name: str) -> bool:
+    """Whether ``name`` can be imported (its parent packages are imported to look)."""
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ImportError:  # a parent package is missing
+        return False
 
 
 if __name__ == "__main__":

@@ -77,6 +77,11 @@ def requested_ranks(overrides: list[str]) -> int | None:
             ranks = match.group(1)
     if ranks is None:
         return None
+    if "," in ranks:
+        refuse(
+            f"mpi.ranks={ranks}: the number of ranks cannot be swept (it launches the "
+            "command): run one sweep per number of ranks"
+        )
     if not ranks.strip().isdigit() or int(ranks) < 1:
         refuse(f"mpi.ranks={ranks}: the number of ranks must be an integer >= 1")
     return int(ranks)

@@ -129,6 +129,11 @@ def test_a_bad_coordinator_variable_is_a_one_line_error_before_launching(
         (["env", "decisions=0", "mpi.ranks=2"], "bad config: decisions=0: must be an integer >= 1"),
         (["ping", "mpi.ranks=abc"], "mpi.ranks=abc: the number of ranks must be an integer >= 1"),
         (["ping", "mpi.ranks=-1"], "mpi.ranks=-1: the number of ranks must be an integer >= 1"),
+        (
+            ["ping", "-m", "mpi.ranks=1,2"],
+            "mpi.ranks=1,2: the number of ranks cannot be swept (it launches the command): run "
+            "one sweep per number of ranks",
+        ),
     ],
 )
 def test_bad_benchmark_settings_are_one_line_errors(tmp_path, settings, message):
@@ -284,6 +289,8 @@ def test_the_guard_runs_a_module_and_refuses_a_missing_script_in_one_line(mpi):
     assert result.returncode == 3 and not result.stderr, result.stderr
     result = mpi(2, "-m", "physicsrl.guard", "nosuch.py", timeout=30, check=False)
     assert (result.returncode, result.stderr) == (2, "error: no script nosuch.py\n")
+    result = mpi(2, "-m", "physicsrl.guard", "-m", "no.such.module", timeout=30, check=False)
+    assert (result.returncode, result.stderr) == (2, "error: no module no.such.module\n")
 
 
 @pytest.mark.parametrize("ranks", [2, 3])
