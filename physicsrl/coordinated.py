@@ -331,7 +331,7 @@ class Coordinator:
                     "inside 'with coordinator:'"
                 )
             if self.rank == 0 and self.size > 1:
-                self.broadcast(obj._namespace, _identity(obj, function), args, kwargs)
+                self.broadcast(obj._namespace, function, args, kwargs)
                 if self._watchdog is not None:
                     self._watchdog.started(self._sequence, obj, function)
                     try:
@@ -348,8 +348,8 @@ class Coordinator:
         kwargs: dict | None = None,
     ) -> None:
         """Send the call ``method(objects[namespace], *args, **kwargs)`` to every follower:
-        ``method`` the name of a method of the object's class, or a function (sent by
-        reference or by value: an override's base method, a free function, a lambda).
+        ``method`` the name of a method of the object's class, or a function (named to the
+        followers once, by :func:`_identity`).
 
         Leader only. Arguments are serialised before anything is sent, so an argument that
         cannot be serialised raises here and the followers stay in step.
@@ -364,7 +364,8 @@ class Coordinator:
         route = self._routes.get((namespace, method))
         if route is None:
             route = len(self._routes)
-            definition, _ = _serialise((namespace, method), {})
+            named = _identity(self.objects[namespace], method) if callable(method) else method
+            definition, _ = _serialise((namespace, named), {})
             payload = len(definition).to_bytes(4, "little") + definition + payload
             flags |= _DEFINE
             self._routes[(namespace, method)] = route
