@@ -443,10 +443,12 @@ class Coordinator:
             except CollectiveError:
                 pass  # the leader raises it too, and its caller decides
             except BaseException:
-                # The same call often fails on every rank: the traceback is printed once, by
-                # the leader if it says it failed too, else here.
-                if self._leader_failed(LEADER_FAILED_GRACE_S):
-                    time.sleep(LEADER_FAILED_GRACE_S)  # the leader's abort normally ends us here
+                # The same call often fails on several ranks: the traceback is printed once, by
+                # the lowest rank that failed (each tells the ranks above it).
+                for rank in range(self.rank + 1, self.size):
+                    self._channel.Isend(self._failed, rank, _FAILED_TAG)
+                if self._lower_rank_failed(LEADER_FAILED_GRACE_S):
+                    time.sleep(LEADER_FAILED_GRACE_S)  # its abort normally ends us here
                     _fail(self.comm, None)
                 _fail(self.comm, "exception in a parallel method on a follower")
             if self._done is not None:
@@ -454,10 +456,11 @@ class Coordinator:
                 if time.monotonic() >= self._next_report:
                     self._report()
 
-    def _leader_failed(self, seconds: float) -> bool:
-        """Whether the leader says, within ``seconds``, that its call failed as well."""
+    def _lower_rank_failed(self, seconds: float) -> bool:
+        """Whether a lower rank (the leader, or a follower) says, within ``seconds``, that its
+        call failed as well."""
         deadline = time.monotonic() + seconds
-        while not self._channel.Iprobe(0, _FAILED_TAG):
+        while not self._channel.Iprobe(MPI.ANY_SOURCE, _FAILED_TAG):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.01)

@@ -101,7 +101,7 @@ def test_calls_are_replayed_on_every_rank(mpi, ranks):
 
 
 @guards
-@pytest.mark.parametrize("where", ["leader", "follower", "all", "leader-code"])
+@pytest.mark.parametrize("where", ["leader", "follower", "followers", "all", "leader-code"])
 def test_a_fault_anywhere_ends_every_rank(mpi, guard, ranks, where):
     start = time.perf_counter()
     result = mpi(ranks, *guard, "tests/mpi_scripts/coord_fault.py", where, timeout=30, check=False)

@@ -17,8 +17,8 @@ class Faulty(Coordinated):
 
     @parallel
     def step(self):
-        fails = {"leader": rank == 0, "follower": rank == 1, "all": True}.get(where, False)
-        if fails:
+        fails = {"leader": rank == 0, "follower": rank == 1, "followers": rank > 0, "all": True}
+        if fails.get(where, False):
             raise RuntimeError(f"injected fault {where}")
         MPI.COMM_WORLD.Barrier()  # the ranks that did not fail wait here for the others
 
