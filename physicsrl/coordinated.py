@@ -328,7 +328,8 @@ class Coordinator:
             if not self._inside:
                 raise CoordinationError(
                     f"{type(obj).__name__}.{function.__name__} is a parallel method: call it "
-                    "inside 'with coordinator:'"
+                    "inside 'with coordinator:', on the leader (if coordinator.is_leader():); "
+                    "the followers serve there until the leader leaves the block"
                 )
             if self.rank == 0 and self.size > 1:
                 self.broadcast(obj._namespace, function, args, kwargs)
