@@ -104,10 +104,13 @@ def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
     assert "export SLURM_MPI_TYPE=pmix" in hydra
 
 
-def test_a_slurm_sweep_is_checked_against_its_jobs_not_the_submitting_process(capsys, monkeypatch):
-    """The README's large-mesh Slurm sweep (8 groups of 8 of the job's 64 ranks) and the GPU
-    preset pass the checks on this 1-rank CPU machine; 8 ranks per group of a 60-rank job do
-    not; a submitting command under several ranks is refused (each rank would submit)."""
+def test_a_slurm_sweep_is_checked_against_its_jobs_not_the_submitting_process(
+    capsys, monkeypatch, tmp_path
+):
+    """The README's large-mesh Slurm sweep (8 groups of 8 of the job's 64 ranks), the GPU
+    preset and a user's experiment that picks the Slurm launcher pass the checks on this
+    1-rank CPU machine; 8 ranks per group of a 60-rank job do not; a submitting command under
+    several ranks is refused (each rank would submit)."""
     from physicsrl.cli.command import validate_or_exit
     from physicsrl.cli.train import check_task
 
@@ -116,6 +119,14 @@ def test_a_slurm_sweep_is_checked_against_its_jobs_not_the_submitting_process(ca
         "train", [*slurm, "mpi.ranks_per_env=8", "+experiment=atp_resolved"], check_task
     )
     validate_or_exit("train", [*slurm, "+experiment=atp_resolved_timing_batched"], check_task)
+    mine = tmp_path / "conf" / "experiment" / "mine.yaml"
+    mine.parent.mkdir(parents=True)
+    mine.write_text(
+        "# @package _global_\ndefaults:\n  - override /hydra/launcher: submitit_slurm\n"
+        "hydra:\n  launcher:\n    tasks_per_node: 4\nmpi:\n  ranks_per_env: 4\n"
+    )
+    search = f"hydra.searchpath=[file://{tmp_path / 'conf'}]"
+    validate_or_exit("train", ["-m", search, "+experiment=mine", "seed=0,1"], check_task)
     for overrides, message in (
         ([*slurm[:2], "hydra.launcher.tasks_per_node=60", "mpi.ranks_per_env=8"], "job's 60 ranks"),
         (slurm, "drop mpi.ranks and mpiexec"),

@@ -76,7 +76,7 @@ def compose(config_name: str, overrides: list[str], hydra: bool = False):
 
 def validate_or_exit(config_name: str, overrides: list[str], check: Callable) -> None:
     """Compose the config of the command line, run every range check of its schema and
-    ``check(cfg, job)`` on this rank (``job``: where it runs, :func:`job_place`), for the job
+    ``check(cfg, job)`` on this rank (``job``: where it runs, :func:`sweep`), for the job
     or, with ``-m``, every job of the sweep (Hydra's basic sweeper: the product of the
     comma-separated values) before any starts; nothing with
     Hydra's print-only flags. On error the leader prints one line (naming the sweep's job) and
@@ -86,8 +86,7 @@ def validate_or_exit(config_name: str, overrides: list[str], check: Callable) ->
         return
     arguments = [o for o in overrides if o not in flags]
     try:
-        jobs = sweep_jobs(arguments, config_name) if flags else [arguments]
-        place = job_place(config_name, jobs[0])
+        jobs, place = sweep(config_name, arguments) if flags else ([arguments], Job.local())
         for number, job in enumerate(jobs, 1):
             try:
                 validate(config_name, job, check, place)
@@ -124,13 +123,20 @@ def validate(config_name: str, overrides: list[str], check: Callable, place: Job
         raise ValueError(one_line(error)) from error
 
 
-def job_place(config_name: str, overrides: list[str]) -> Job:
-    """Where the job of ``overrides`` will run: here (:meth:`Job.local`), or, with Hydra's
-    Slurm launcher (``+cluster=slurm``), elsewhere on its nodes x tasks_per_node ranks.
-    ValueError for a submitit launcher under several ranks: each would submit the sweep."""
-    if not any("cluster" in o or "launcher" in o for o in overrides):
-        return Job.local()
-    launcher = compose(config_name, overrides, hydra=True).hydra.launcher
+def sweep(config_name: str, overrides: list[str]) -> tuple[list[list[str]], Job]:
+    """The jobs of a sweep, as Hydra's basic sweeper will launch them (the config's
+    ``hydra.sweeper.params``, which an experiment's YAML may set, then the command line's),
+    and where each runs (:func:`job_place` of the sweep's launcher)."""
+    settings = compose(config_name, sweep_jobs(overrides)[0], hydra=True).hydra
+    params = [f"{key}={value}" for key, value in (settings.sweeper.params or {}).items()]
+    return sweep_jobs([*params, *overrides]), job_place(settings.launcher)
+
+
+def job_place(launcher) -> Job:
+    """Where each job of a sweep launched by ``launcher`` (its ``hydra.launcher`` config)
+    runs: here (:meth:`Job.local`), or, with Hydra's Slurm launcher (``+cluster=slurm``),
+    elsewhere on its nodes x tasks_per_node ranks. ValueError for a submitit launcher under
+    several ranks: each would submit the sweep."""
     target = str(launcher.get("_target_", ""))
     if "submitit" in target and Job.local().ranks > 1:
         raise ValueError(
@@ -143,10 +149,9 @@ def job_place(config_name: str, overrides: list[str]) -> Job:
     return Job(int(launcher.nodes) * int(launcher.tasks_per_node), here=False)
 
 
-def sweep_jobs(overrides: list[str], config_name: str | None = None) -> list[list[str]]:
-    """The overrides of each job of a sweep, as Hydra's basic sweeper will launch them: with
-    ``config_name``, the config's ``hydra.sweeper.params`` (an experiment's YAML may set
-    them) before the command line's; ``glob(...)`` of a group lists its shipped options."""
+def sweep_jobs(overrides: list[str]) -> list[list[str]]:
+    """The overrides of each job of a sweep of ``overrides``, as Hydra's basic sweeper
+    expands them; ``glob(...)`` of a group lists its shipped options."""
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra._internal.utils import create_config_search_path
@@ -155,13 +160,8 @@ def sweep_jobs(overrides: list[str], config_name: str | None = None) -> list[lis
     loader = ConfigLoaderImpl(
         config_search_path=create_config_search_path(f"pkg://{CONFIG_MODULE}")
     )
-    parser = OverridesParser.create(config_loader=loader)
     try:
-        parsed = parser.parse_overrides(overrides)
-        if config_name is not None:
-            fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
-            params = compose(config_name, fixed, hydra=True).hydra.sweeper.params or {}
-            parsed = parser.parse_overrides([*(f"{k}={v}" for k, v in params.items()), *overrides])
+        parsed = OverridesParser.create(config_loader=loader).parse_overrides(overrides)
         return BasicSweeper.split_arguments(parsed, None)[0]
     except Exception as error:  # noqa: BLE001 - the parser raises several kinds
         raise ValueError(one_line(error)) from error
