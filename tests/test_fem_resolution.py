@@ -9,8 +9,11 @@ import physicsrl.fem  # noqa: F401  (first: loads the MPI library that dolfinx l
 import math
 import warnings
 
+import dolfinx.mesh
 import numpy as np
 import pytest
+from dolfinx.mesh import CellType
+from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import load_config, make_env
@@ -23,7 +26,7 @@ def test_the_report_grid_reads_its_row_of_the_table(scheme):
     """60 x 60 cells of side 100/60: h is the cell diagonal, the width sqrt(0.013 * 0.3), and
     the expected CV error is the table's entry for that ratio (a row of the table)."""
     mesh = physicsrl.fem.default_ms_mesh(n=60)
-    r = guard.resolution(mesh, 0.013, 0.3, scheme)
+    r = guard.resolution(mesh, 0.013, 0.3, scheme, 0.03)
     assert r.h == pytest.approx(math.sqrt(2) * 100 / 60, rel=1e-12)
     assert r.front_width == pytest.approx(math.sqrt(0.0039), rel=1e-12)
     ratios, errors = cv_table(scheme)
@@ -31,20 +34,49 @@ def test_the_report_grid_reads_its_row_of_the_table(scheme):
     assert ratios[row] == pytest.approx(r.ratio, rel=1e-4)
     assert r.cv_error == pytest.approx(errors[row], abs=1e-4)
     assert str(r).count("\n") == 0 and f"{r.cv_error:+.1%}" in str(r)
+    assert not r.uncovered and "not in the table" not in str(r)
 
 
-def build(capsys, *overrides):
+def test_what_the_table_does_not_cover_is_named_and_warned():
+    """Triangles, a dt longer than the table's and a mesh coarser than its coarsest row are
+    named in the report and warned about: the table's number is then a lower bound (coarser)
+    or unmeasured (triangles, dt), even where it is below 5 % (h = 0.2: +4.9 %)."""
+    fine = 100 / 500  # cell side of 500 x 500 on [-50, 50]^2: h/width 3.2
+    for cells, cell_type, dt, reason in [
+        (40, "triangle", 0.03, "triangle cells, it has quadrilaterals"),
+        (40, "quadrilateral", 0.5, "dt = 0.5, it has 0.03"),
+        (1, "quadrilateral", 0.03, "h/width above its coarsest 37.7"),
+    ]:
+        side = fine * 40 if cells == 40 else 5.0  # the one-cell mesh: h/width 114
+        mesh = dolfinx.mesh.create_rectangle(
+            MPI.COMM_WORLD, [[0, 0], [side, side]], [cells, cells], getattr(CellType, cell_type)
+        )
+        r = guard.resolution(mesh, 0.013, 0.3, "implicit", dt)
+        assert r.uncovered == (reason,)
+        assert reason in str(r) and reason in r.warning and "\n" not in r.warning
+    coarsest = f"at least {cv_table('implicit')[1][-1]:+.1%}"
+    assert coarsest in str(r) and coarsest in r.warning
+    quads = dolfinx.mesh.create_rectangle(
+        MPI.COMM_WORLD, [[0, 0], [8, 8]], [40, 40], CellType.quadrilateral
+    )
+    assert guard.resolution(quads, 0.013, 0.3, "implicit", 0.01).warning is None
+
+
+def build(capsys, *overrides_per_env):
+    """The ResolutionWarnings and output of building one ATP env per list of overrides, in
+    one process under Python's default warning filter."""
     with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        make_env(load_config("ms", "catheter", "atp", list(overrides)), Coordinator())
+        warnings.simplefilter("default")
+        for overrides in overrides_per_env:
+            make_env(load_config("ms", "catheter", "atp", overrides), Coordinator())
     return [w for w in caught if issubclass(w.category, ResolutionWarning)], capsys.readouterr()
 
 
-def test_the_report_preset_warns_once_and_a_resolved_mesh_not(capsys, monkeypatch):
-    """Building the report's 60 x 60 ATP env prints its resolution and warns once (one line),
-    not again for a second env; a resolved mesh (h = 0.1, explicit: -2 % expected) prints
-    and does not warn, nor does the 60 x 60 env with env.model.warn_resolution=false."""
-    monkeypatch.setattr(guard, "_warned", False)
+def test_the_report_preset_warns_once_and_a_resolved_mesh_not(capsys):
+    """Building the report's 60 x 60 ATP env prints its resolution and warns (one line),
+    under Python's default filter not again for a second such env but again for another
+    mesh; a resolved mesh (h = 0.1, explicit: -2 % expected) prints and does not warn, nor
+    does the 60 x 60 env with env.model.warn_resolution=false."""
     quiet = ["env.model.warn_resolution=false"]
     resolved = [
         "env.mesh.cells=20",
@@ -52,12 +84,19 @@ def test_the_report_preset_warns_once_and_a_resolved_mesh_not(capsys, monkeypatc
         "env.model.scheme=explicit",
         "observation.distances=[0.75,0.65,0.35,0.25]",
     ]
-    caught, out = build(capsys, *resolved)
+    caught, out = build(capsys, resolved)
     assert not caught and "expected planar CV error -2.2%" in out.out
-    caught, _ = build(capsys, *quiet)
+    caught, _ = build(capsys, quiet)
     assert not caught
-    caught, out = build(capsys)
-    assert len(caught) == 1 and "\n" not in str(caught[0].message)
-    assert "resolution: h = 2.36" in out.out
-    caught, _ = build(capsys)
-    assert not caught
+    caught, out = build(capsys, [], [], ["env.mesh.cells=50"])
+    assert len(caught) == 2 and "\n" not in str(caught[0].message)
+    assert "h/width = 37.7" in str(caught[0].message)
+    assert "h/width = 45.3" in str(caught[1].message)
+    assert out.out.count("resolution: h = 2.36") == 2
+
+
+def test_a_front_speed_with_a_step_longer_than_its_sampling_interval_ends():
+    """``planar_front_speed`` samples every 0.5 time units, or every dt when dt is longer: with
+    dt = 1.5 it returns (it used to advance by 0 forever); the front, stepped that coarsely,
+    dies."""
+    assert guard.planar_front_speed(0.25, 1.5, length=4.0, T=20.0) == 0.0

@@ -186,7 +186,7 @@ class BatchedMonodomain:
         self.replica_steps = 0  # steps of dt advanced, summed over the replicas
         self.batch_steps = 0  # steps of dt advanced, each of one batch of replicas
         self.threads = integer("threads", threads)
-        self.resolution = resolution(domain, D, tau_in, scheme)
+        self.resolution = resolution(domain, D, tau_in, scheme, self.dt)
         V = self.V = fem.functionspace(domain, ("Lagrange", 1))
         Q = fem.functionspace(domain, ("DG", 0))
         self.num_dofs = V.dofmap.index_map.size_local

@@ -239,7 +239,7 @@ class MonodomainMitchellSchaeffer(Coordinated):
         dx_exact = ufl.dx(domain=domain, metadata={"quadrature_degree": degree})
         self.problem.set_dt(dt)
         self.tau_in, self.tau_out, self.D = tau_in_c, tau_out_c, D_c  # fem.Constant
-        self.resolution = resolution(domain, D, tau_in, scheme)
+        self.resolution = resolution(domain, D, tau_in, scheme, dt)
         self._kernels = compiled.load(domain.comm) if rhs == "compiled" else None
         self._explicit = None
         if scheme == "explicit":

@@ -4,11 +4,15 @@ The excitation front of the monodomain model is about :math:`\sqrt{D \tau_\mathr
 (0.062 mm for the report's D = 0.013 mm^2/ms, :math:`\tau_\mathrm{in}` = 0.3 ms). The planar
 conduction velocity (CV) a scheme computes depends on h against that width;
 ``benchmarks/ms_cv.py`` measures its relative error against the converged CV for both schemes
-at dt = 0.03 and writes the table :data:`TABLE` (``cv_error.csv`` beside this module, the one
-place the numbers live). :func:`resolution` interpolates it, linearly in
-:math:`\log(h / \text{width})`, clamped to the table's ends; :func:`report` prints it and
-warns when the error is above :data:`MAX_CV_ERROR`. The heat equation's counterpart is
-:class:`physicsrl.fem.heat.HeatResolution`; :func:`report` prints either.
+on quadrilateral cells at dt = :data:`TABLE_DT` and writes the table :data:`TABLE`
+(``cv_error.csv`` beside this module, the one place the numbers live). :func:`resolution`
+interpolates it, linearly in :math:`\log(h / \text{width})`; :func:`report` prints it and
+warns when the error is above :data:`MAX_CV_ERROR`, or when the table does not cover the mesh
+and step: h / width beyond its coarsest row (the error is then at least that row's), other
+cells than quadrilaterals (on triangles a front along their diagonals is slower to converge
+than one along the edges, which the table measures), or a longer dt (its time-step error adds
+to the table's). The heat equation's counterpart is :class:`physicsrl.fem.heat.HeatResolution`;
+:func:`report` prints either.
 """
 
 from __future__ import annotations
@@ -26,6 +30,9 @@ from mpi4py import MPI
 MAX_CV_ERROR = 0.05
 """Expected relative planar CV error above which :func:`report` warns."""
 
+TABLE_DT = 0.03
+"""The time step of :data:`TABLE`'s measurements (the tasks' dt)."""
+
 TABLE = Path(__file__).with_name("cv_error.csv")
 """Columns ``scheme``, ``h_over_width``, ``cv_error`` (relative, signed: -1 when no wave
 propagates), written by ``benchmarks/ms_cv.py``."""
@@ -34,14 +41,18 @@ propagates), written by ``benchmarks/ms_cv.py``."""
 @dataclass(frozen=True)
 class Resolution:
     """A mesh against the front: largest cell diameter ``h``, front width
-    :math:`\\sqrt{D \\tau_\\mathrm{in}}`, and the expected relative planar CV error of
-    ``scheme`` from :data:`TABLE`."""
+    :math:`\\sqrt{D \\tau_\\mathrm{in}}`, the time step ``dt``, and the expected relative planar
+    CV error of ``scheme`` from :data:`TABLE` (clamped to its rows); ``uncovered`` names what
+    of this mesh and step the table does not cover (module docstring), empty if nothing."""
 
     scheme: str
+    cell_type: str
     cells: int
     h: float
+    dt: float
     front_width: float
     cv_error: float
+    uncovered: tuple[str, ...] = ()
 
     @property
     def ratio(self) -> float:
@@ -52,21 +63,40 @@ class Resolution:
         return f"{self.cells} cells, h = {self.h:.4g}"
 
     @property
+    def expected(self) -> str:
+        """The expected CV error in words: the table's, or "at least" its coarsest row's."""
+        coarser = self.ratio > cv_table(self.scheme)[0][-1]
+        return f"{'at least ' if coarser else ''}{self.cv_error:+.1%}"
+
+    @property
     def warning(self) -> str | None:
-        """The one-line warning if the expected CV error exceeds :data:`MAX_CV_ERROR`."""
-        if abs(self.cv_error) <= MAX_CV_ERROR:
-            return None
-        return (
-            f"the mesh does not resolve the front (h/width = {self.ratio:.3g}, expected "
-            f"planar CV error {self.cv_error:+.0%}, above {MAX_CV_ERROR:.0%}): the "
-            "dynamics are numerical; refine the mesh, or set env.model.warn_resolution=false"
-        )
+        """The one-line warning if the expected CV error exceeds :data:`MAX_CV_ERROR` or the
+        table does not cover this mesh and step."""
+        if abs(self.cv_error) > MAX_CV_ERROR:
+            return (
+                f"the mesh does not resolve the front (h/width = {self.ratio:.3g}, expected "
+                f"planar CV error {self.expected}, above {MAX_CV_ERROR:.0%}{self._not_covered}):"
+                " the dynamics are numerical; refine the mesh, or set "
+                "env.model.warn_resolution=false"
+            )
+        if self.uncovered:
+            return (
+                f"the table of planar CV errors does not cover this mesh and step "
+                f"({'; '.join(self.uncovered)}): the error can exceed its {self.expected}; "
+                "check the front speed, or set env.model.warn_resolution=false"
+            )
+        return None
+
+    @property
+    def _not_covered(self) -> str:
+        return f"; not in the table: {'; '.join(self.uncovered)}" if self.uncovered else ""
 
     def __str__(self) -> str:
         return (
             f"resolution: h = {self.h:.3g}, front width sqrt(D tau_in) = {self.front_width:.3g},"
-            f" h/width = {self.ratio:.3g}: expected planar CV error {self.cv_error:+.1%}"
-            f" ({self.scheme} scheme, {self.cells} cells)"
+            f" h/width = {self.ratio:.3g}: expected planar CV error {self.expected}"
+            f" ({self.scheme} scheme, dt = {self.dt:g}, {self.cells} {self.cell_type} cells"
+            f"{self._not_covered})"
         )
 
 
@@ -99,12 +129,23 @@ def largest_cell_diameter(domain) -> float:
     return domain.comm.allreduce(h, op=MPI.MAX)
 
 
-def resolution(domain, D: float, tau_in: float, scheme: str) -> Resolution:
-    """The :class:`Resolution` of ``domain`` for the model's D and tau_in (collective)."""
+def resolution(domain, D: float, tau_in: float, scheme: str, dt: float) -> Resolution:
+    """The :class:`Resolution` of ``domain`` for the model's D, tau_in and time step
+    (collective)."""
     h = largest_cell_diameter(domain)
     width = math.sqrt(D * tau_in)
     cells = domain.topology.index_map(domain.topology.dim).size_global
-    return Resolution(scheme, cells, h, width, expected_cv_error(scheme, h / width))
+    cell_type = domain.topology.cell_type.name
+    ratios, _ = cv_table(scheme)
+    uncovered = []
+    if h / width > ratios[-1]:
+        uncovered.append(f"h/width above its coarsest {ratios[-1]:.3g}")
+    if cell_type != "quadrilateral":
+        uncovered.append(f"{cell_type} cells, it has quadrilaterals")
+    if dt > TABLE_DT * (1 + 1e-9):
+        uncovered.append(f"dt = {dt:g}, it has {TABLE_DT:g}")
+    error = expected_cv_error(scheme, h / width)
+    return Resolution(scheme, cell_type, cells, h, dt, width, error, tuple(uncovered))
 
 
 class ResolutionWarning(UserWarning):
@@ -112,20 +153,16 @@ class ResolutionWarning(UserWarning):
     model's resolution class."""
 
 
-_warned = False
-
-
 def report(resolution, warn: bool = True) -> None:
     """Print ``resolution`` (a :class:`Resolution`, or any object with ``__str__`` and a
     ``warning`` that is None or one line) on rank 0 of the job (not on the leaders of other
-    environment groups: they simulate the same mesh), and once per process a
-    :class:`ResolutionWarning` if it has a warning, unless ``warn`` is false."""
-    global _warned
+    environment groups: they simulate the same mesh), and a :class:`ResolutionWarning` if it
+    has a warning, unless ``warn`` is false (Python's default filter shows each distinct
+    warning once per process)."""
     if MPI.COMM_WORLD.rank != 0:
         return
     print(resolution, flush=True)
-    if warn and not _warned and resolution.warning:
-        _warned = True
+    if warn and resolution.warning:
         warnings.warn(resolution.warning, ResolutionWarning, stacklevel=2)
 
 
@@ -142,7 +179,8 @@ def planar_front_speed(
     quadrilaterals on this process, started by u = 1 on x < max(0.3, 3 h): the slope of the
     front position (where u = 0.5, linear interpolation along x) against time over
     [t_fit, T] (``t_fit=None``: the later two thirds of the samples), sampled every 0.5 time
-    units until the front passes 80 % of the strip; 0 if the front dies (no wave propagates)."""
+    units (every dt if longer) until the front passes 80 % of the strip; 0 if the front dies
+    (no wave propagates)."""
     from physicsrl.coordinated import Coordinator
     from physicsrl.fem.monodomain import MonodomainMitchellSchaeffer
 
@@ -166,7 +204,7 @@ def planar_front_speed(
     times, positions = [], []
     with ms.coordinator:
         while ms.t < T - 1e-9:
-            ms.advance_time(round(0.5 / dt) * dt)
+            ms.advance_time(max(1, round(0.5 / dt)) * dt)
             u = ms.u_n().x.array[bottom]
             excited = np.nonzero(u > 0.5)[0]
             if excited.size == 0:
