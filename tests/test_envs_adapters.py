@@ -44,3 +44,15 @@ def test_same_seed_same_trajectory_on_1_and_2_ranks():
     # Different seeds gave different episodes (the comparison is not vacuous).
     starts = {episode["observation"][0][0] for episode in one["heat"]}
     assert len(starts) > 1
+
+
+@pytest.mark.parametrize("ranks", [1, 2])
+def test_a_bad_action_is_refused_on_the_leader_and_the_env_goes_on(ranks):
+    """Out of range, negative, fractional (not truncated to a valid one) and boolean actions:
+    one ValueError each on the leader, before any rank steps (on 2 ranks the job is not
+    aborted), and the next valid step is the episode's first."""
+    result = run_mpi(ranks, "tests/mpi_scripts/envs_bad_action.py", timeout=120)
+    refused = [line for line in result.stdout.splitlines() if line.startswith("refused:")]
+    assert [line.split("got ")[1] for line in refused] == ["2", "-1", "1.7", "0.5", "True"]
+    assert "must be an integer in 0..1" in refused[0]
+    assert "then step 1" in result.stdout and not result.stderr.count("Traceback")

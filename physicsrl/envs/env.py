@@ -104,7 +104,12 @@ class PhysicsEnv(EnvBase):
         raise RuntimeError(f"{self.max_reset_attempts} reset draws in a row gave non-finite states")
 
     def _step(self, tensordict: TensorDict) -> TensorDict:
-        t = self.task.step(int(tensordict["action"]))
+        action = tensordict["action"]
+        if not self.action_spec.is_in(action):  # here, not on every rank inside the task
+            raise ValueError(
+                f"action must be an integer in 0..{self.task.n_actions - 1}, got {action.tolist()}"
+            )
+        t = self.task.step(int(action))
         return TensorDict(
             {
                 **self._observation(t.observation, t.step, t.diverged, t.flags),

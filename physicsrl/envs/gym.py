@@ -40,7 +40,7 @@ class GymnasiumView(gymnasium.Env):
         return self._unpack(self.env.reset())
 
     def step(self, action):
-        td = TensorDict({"action": torch.tensor(int(action))}, batch_size=[])
+        td = TensorDict({"action": torch.as_tensor(np.asarray(action))}, batch_size=[])
         result = self.env.step(td)["next"]
         observation, info = self._unpack(result)
         return (
