@@ -223,3 +223,26 @@ def test_resolution_report_converges_under_refinement():
     assert "h = 0.113, dt = 0.01" in str(coarse) and "\n" not in str(coarse)
     with pytest.raises(ValueError, match="extent: the mesh is not the square"):
         resolution(env, 1.0, times)
+
+
+@pytest.mark.parametrize(
+    "extent, times, message",
+    [
+        (-2.0, [0.1], "extent must be a finite number > 0, got -2.0"),
+        (2.0, [], r"times must be finite times > 0, at least one, got \[\]"),
+        (2.0, [0.0, 0.1], r"times must be finite times > 0"),
+        (2.0, [0.2, 0.1], r"times must be ascending, got \[0.2, 0.1\]"),
+        (2.0 + 1e-9, [0.1], "extent: the mesh is not the square"),
+    ],
+)
+def test_bad_resolution_arguments_are_refused_before_solving(extent, times, message):
+    """One line naming the bad argument, before the simulator moves (its time stays 0); a
+    mesh off the extent by 1e-9 is refused too (no absolute tolerance)."""
+    env = HeatEnvironment(Coordinator(), square(4), dt=0.1)
+    with pytest.raises(ValueError, match=message):
+        resolution(env, extent, times)
+    assert env.problem.t == 0
+    with pytest.raises(ValueError, match="need extent > 0 and times t >= 0"):
+        transient_integral([0.1, -0.1], 2.0)
+    with pytest.raises(ValueError, match="need extent > 0"):
+        transient_integral(0.1, -2.0)

@@ -51,7 +51,7 @@ from physicsrl.fem.errors import InvalidValue
 from physicsrl.fem.integrals import WeightedIntegrals, form_rows, quadrant_weights
 from physicsrl.fem.resolution import largest_cell_diameter
 from physicsrl.fem.time_problem import TimeProblem
-from physicsrl.fem.values import assign
+from physicsrl.fem.values import assign, positive
 
 
 def default_heat_mesh(comm: MPI.Comm = MPI.COMM_WORLD) -> mesh.Mesh:
@@ -194,8 +194,11 @@ def transient_integral(t, extent: float, modes: int = 2000) -> np.ndarray:
     """The exact integral of the transient z (module docstring) over [-extent, extent]^2 at
     times ``t`` (shape (k,), >= 0), from the first ``modes`` odd terms of S(t) (at t = 0 they
     miss about 4 extent / (pi^2 modes) of S(0) = 2 extent; nothing measurable from t = 0.01)."""
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    if extent <= 0 or not (t >= 0).all():
+        raise ValueError(f"need extent > 0 and times t >= 0, got extent {extent}, t {t.tolist()}")
     m = np.arange(1, 2 * modes, 2)[:, None]
-    decay = np.exp(-((m * np.pi / (2 * extent)) ** 2) * np.atleast_1d(t))
+    decay = np.exp(-((m * np.pi / (2 * extent)) ** 2) * t)
     return (16 * extent / (np.pi**2 * m**2) * decay).sum(axis=0) ** 2
 
 
@@ -246,10 +249,16 @@ def resolution(simulator: HeatEnvironment, extent: float, times) -> HeatResoluti
     """
     problem, domain = simulator.problem, simulator.domain
     comm = domain.comm
+    extent = positive("extent", extent)
+    times = np.array(times, dtype=float, ndmin=1)
+    if times.ndim != 1 or not times.size or not np.isfinite(times).all() or times[0] <= 0:
+        raise InvalidValue(f"times must be finite times > 0, at least one, got {times.tolist()}")
+    if np.any(np.diff(times) <= 0):
+        raise InvalidValue(f"times must be ascending, got {times.tolist()}")
     x = domain.geometry.x[:, :2]
     bounds = np.concatenate([-x.min(axis=0, initial=np.inf), x.max(axis=0, initial=-np.inf)])
     comm.Allreduce(MPI.IN_PLACE, bounds, op=MPI.MAX)  # (-x_min, -y_min, x_max, y_max)
-    if not np.allclose(bounds, extent, rtol=1e-12):
+    if not np.allclose(bounds, extent, rtol=1e-12, atol=0):
         raise InvalidValue(f"extent: the mesh is not the square [-{extent}, {extent}]^2")
     integral = fem.form(problem.u_n * ufl.dx)
     runs = []
@@ -261,7 +270,6 @@ def resolution(simulator: HeatEnvironment, extent: float, times) -> HeatResoluti
             problem.solve(t - problem.t)
             values.append(comm.allreduce(fem.assemble_scalar(integral), op=MPI.SUM))
         runs.append(values)
-    times = np.asarray(times, dtype=float)
     errors = np.subtract(*runs) / transient_integral(times, extent) - 1
     cells = domain.topology.index_map(domain.topology.dim).size_global
     dt = float(problem.dt.value)
