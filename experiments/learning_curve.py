@@ -27,7 +27,15 @@ def main() -> None:
     parser.add_argument("--ranks", type=int, help="the job's ranks (default: its summary's)")
     parser.add_argument("--seeds", type=int, help="per-seed tables: the first N held-out seeds")
     args = parser.parse_args()
-    seeds = None if args.seeds is None else set(held_out_seeds(args.seeds))
+    if args.ranks is not None and args.ranks < 1:
+        parser.error(f"--ranks {args.ranks}: a job has at least 1 rank")
+    missing = [str(p) for p in (*args.baselines, args.out.parent) if not p.exists()]
+    if missing:
+        parser.error(f"{missing[0]}: no such file or directory")
+    try:
+        seeds = None if args.seeds is None else set(held_out_seeds(args.seeds))
+    except ValueError as error:
+        parser.error(f"--seeds: {error}")
     if plot(args.run, args.out, best_rows(args.baselines, seeds), args.ranks) is None:
         raise SystemExit(f"{args.run / 'eval.csv'}: no evaluations with wall_s")
     print(args.out)

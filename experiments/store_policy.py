@@ -18,11 +18,16 @@ KEPT = {"counters": True, "extra": False, "history": False, "q_network": True}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("run", help="a checkpoint file, or a run directory (its newest)")
-    parser.add_argument("out", type=Path)
+    parser.add_argument("out", type=Path, help="a new file (TorchRL would replace a directory)")
     args = parser.parse_args()
-    source = checkpoint_file(args.run)
+    if args.out.exists():
+        parser.error(f"{args.out} exists: name a new file")
+    try:
+        source = checkpoint_file(args.run)
+    except ValueError as error:
+        parser.error(str(error))
     states = read(source, KEPT)
     checkpoint = Checkpoint()
     for name, is_state in KEPT.items():

@@ -95,6 +95,14 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
     assert stored.stat().st_size < trained.stat().st_size / 10
     weights, original = read(stored, ["q_network"]), read(trained, ["q_network"])
     torch.testing.assert_close(weights, original, rtol=0, atol=0)
+    # an existing path is refused in one line and kept (TorchRL replaced a directory, so
+    # naming the run itself deleted it)
+    for taken in (stored, run):
+        before = sorted(taken.rglob("*")) if taken.is_dir() else taken.read_bytes()
+        with pytest.raises(SystemExit) as exit_:
+            run_script("store_policy.py", str(run), str(taken))
+        assert exit_.value.code == 2
+        assert (sorted(taken.rglob("*")) if taken.is_dir() else taken.read_bytes()) == before
 
 
 def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
@@ -549,6 +557,15 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
         [*script, str(run), str(png), "--baselines", str(table)], check=True, timeout=120
     )
     assert png.stat().st_size > 10_000
+    for bad, named in (
+        (["--ranks", "-3"], "--ranks -3: a job has at least 1 rank"),
+        (["--baselines", str(tmp_path / "nosuch.csv")], "nosuch.csv: no such file"),
+        (["--seeds", "0"], "--seeds: the number of held-out seeds must be an integer >= 1"),
+    ):
+        result = subprocess.run(
+            [*script, str(run), str(png), *bad], capture_output=True, text=True, timeout=120
+        )
+        assert result.returncode == 2 and named in result.stderr.splitlines()[-1], result.stderr
 
 
 def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
