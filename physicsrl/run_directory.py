@@ -17,14 +17,15 @@ from physicsrl.launch import refuse
 class WritableRunDirectory(Callback):
     """Hydra callback (``hydra.callbacks`` in ``common.yaml``): before Hydra writes its files,
     the leader checks that the run (or sweep) directory can be written, and, for a new
-    training run (``resume`` unset), that it holds no other run's checkpoints (Hydra would
-    write into it, and its checkpoints would mix with the new run's); if not, every rank ends
-    with status 2 and one line naming the directory, instead of the leader failing in Hydra's
-    log setup while the followers wait for it."""
+    training run (``resume`` unset) or an evaluation (``run`` set), that it holds no training
+    run's checkpoints (Hydra would write into it: a new run's checkpoints would mix with the
+    other's, an evaluation would replace the run's ``eval.csv`` and ``.hydra/``); if not,
+    every rank ends with status 2 and one line naming the directory, instead of the leader
+    failing in Hydra's log setup while the followers wait for it."""
 
     def on_run_start(self, config, **kwargs) -> None:
-        new_run = "resume" in config and not config.resume
-        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir, new_run and RUN)
+        fresh = ("resume" in config and not config.resume) or "run" in config
+        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir, fresh and RUN)
 
     def on_multirun_start(self, config, **kwargs) -> None:
         new_runs = "resume" in config and not config.resume
@@ -44,8 +45,8 @@ def agree_directory_is_writable(key: str, directory: str, taken: str | bool = Fa
     problem = None
     if comm.rank == 0 and taken and next(Path(directory).glob(taken), None):
         problem = (
-            f"{key}={directory}: it holds another run's checkpoints; resume=true continues it, "
-            "a new run needs another directory"
+            f"{key}={directory}: it holds a training run's checkpoints; resume=true continues "
+            "it, a new run or an evaluation needs another directory"
         )
     elif comm.rank == 0:
         probe = Path(directory) / ".physicsrl-write-test"

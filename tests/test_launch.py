@@ -162,24 +162,54 @@ def test_a_sweep_directory_that_cannot_be_written_is_one_line(tmp_path):
 
 
 def test_a_new_run_refuses_a_directory_that_holds_another_runs_checkpoints(tmp_path):
-    """A new training run or sweep into a directory with checkpoints ends every rank in one
-    line before Hydra writes there (the runs' checkpoints mixed: an evaluation then read the
-    other run's policy); resume=true is how to continue it."""
-    train = str(BIN / "physicsrl-train")
+    """A new training run or sweep, or an evaluation, into a directory with checkpoints ends
+    every rank in one line before Hydra writes there (the runs' checkpoints mixed: an
+    evaluation then read the other run's policy; an evaluation replaced the run's eval.csv,
+    its learning curve); resume=true is how to continue it."""
+    train = [str(BIN / "physicsrl-train"), "iterations=1", "env.mesh.cells=8"]
     for directory, where in ((tmp_path / "run", "."), (tmp_path / "sweep", "1")):
         checkpoints = directory / where / "checkpoints"
         checkpoints.mkdir(parents=True)
         (checkpoints / "ckpt-000000000002.torchrl").write_text("")
+    (tmp_path / "run" / "eval.csv").write_text("iteration,return\n2,1.0\n")
     runs = [
-        ("hydra.run.dir", [f"hydra.run.dir={tmp_path / 'run'}", "mpi.ranks=2"]),
-        ("hydra.sweep.dir", ["-m", "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}"]),
+        ("hydra.run.dir", [*train, f"hydra.run.dir={tmp_path / 'run'}", "mpi.ranks=2"]),
+        ("hydra.sweep.dir", [*train, "-m", "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}"]),
+        (
+            "hydra.run.dir",
+            [
+                str(BIN / "physicsrl-eval"),
+                f"run={tmp_path / 'run'}",
+                f"hydra.run.dir={tmp_path / 'run'}",
+            ],
+        ),
     ]
-    for key, overrides in runs:
-        result = run([train, "iterations=1", "env.mesh.cells=8", *overrides], cwd=tmp_path)
+    for key, command in runs:
+        result = run(command, cwd=tmp_path)
         assert result.returncode == 2, result.stderr
         [line] = result.stderr.splitlines()
-        assert line.startswith(f"error: {key}=") and "holds another run's checkpoints" in line
+        assert line.startswith(f"error: {key}=") and "holds a training run's checkpoints" in line
     assert not (tmp_path / "run" / ".hydra").exists()
+    assert (tmp_path / "run" / "eval.csv").read_text() == "iteration,return\n2,1.0\n"
+
+
+def test_commands_started_together_get_run_directories_of_their_own(tmp_path):
+    """The default run directory is the leader's start time to the microsecond: two commands
+    started in the same second wrote into one directory (three evaluations kept one's
+    results, and all three printed its path)."""
+    command = [str(BIN / "physicsrl-bench"), "ping", *QUICK]
+    environment = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    started = [
+        subprocess.Popen(command, cwd=tmp_path, env=environment, stdout=subprocess.PIPE, text=True)
+        for _ in range(2)
+    ]
+    outputs = [process.communicate(timeout=120)[0] for process in started]
+    assert [process.returncode for process in started] == [0, 0]
+    results = [
+        line.split()[-1] for out in outputs for line in out.splitlines() if "results" in line
+    ]
+    directories = sorted((tmp_path / "outputs" / "bench_ping").iterdir())
+    assert len(directories) == 2 and sorted(Path(r).parent for r in results) == directories
 
 
 def test_print_only_flags_print_once_under_two_ranks(tmp_path):
