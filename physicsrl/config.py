@@ -54,9 +54,25 @@ def check_seeds(seed: int, iterations: int, eval_seeds: list[int]) -> None:
         raise ValueError(f"eval.seeds {clash[:3]} are also training seeds (seed * 1e6 + i)")
 
 
+MAX_SEEDS = SEEDS_PER_RUN
+"""The most seeds (episodes per policy) one evaluation takes."""
+
+
 def held_out_seeds(n: int) -> list[int]:
-    """The first ``n`` held-out evaluation seeds."""
+    """The first ``n`` held-out evaluation seeds (1 <= n <= :data:`MAX_SEEDS`)."""
+    integer("the number of held-out seeds", n, 1)
+    if n > MAX_SEEDS:
+        raise ValueError(f"{n} held-out seeds (an episode each): at most {MAX_SEEDS}")
     return list(range(HELD_OUT_START, HELD_OUT_START + n))
+
+
+def check_seed_list(name: str, seeds: list) -> None:
+    """ValueError naming ``name`` unless ``seeds`` are integers >= 0, each once."""
+    for i, seed in enumerate(seeds):
+        integer(f"{name}[{i}]", seed, 0)
+    repeated = sorted({int(s) for s in seeds if seeds.count(s) > 1})
+    if repeated:
+        raise ValueError(f"{name} lists {repeated[0]} more than once (one episode per seed)")
 
 
 def is_held_out(seed: int | None) -> bool:
@@ -249,6 +265,7 @@ class Evaluation:
         integer("eval.every", self.every, 0)
         if not self.seeds:
             raise ValueError("eval.seeds must list at least one seed")
+        check_seed_list("eval.seeds", list(self.seeds))
 
 
 @dataclass
@@ -304,8 +321,7 @@ class EvalConfig:
         positive("fps", self.fps)
         seeds = plain(self.seeds)
         if isinstance(seeds, list) and seeds:
-            for i, seed in enumerate(seeds):
-                integer(f"seeds[{i}]", seed, 0)
+            check_seed_list("seeds", seeds)
         elif seeds is not None:
             try:
                 integer("seeds", seeds, 1)
@@ -313,6 +329,11 @@ class EvalConfig:
                 raise ValueError(
                     f"seeds must be N >= 1, a non-empty list of seeds >= 0, or null; got {seeds!r}"
                 ) from None
+            if seeds > MAX_SEEDS:
+                raise ValueError(
+                    f"seeds={seeds}: N runs N episodes per policy, at most {MAX_SEEDS} (a seed "
+                    f"itself goes in a list: seeds=[{seeds}])"
+                )
         if self.gif_seed is not None:
             integer("gif_seed", self.gif_seed, 0)
 

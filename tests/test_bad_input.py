@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import MPIEXEC
+from tests.conftest import MPIEXEC, ROOT
 
 BIN = Path(sys.executable).parent
 RUN = "<checkpoint>"  # physicsrl-eval rows: replaced by a checkpoint file
@@ -133,6 +133,11 @@ ROWS = [
     ("eval", ["fields=maybe"], "'fields'"),
     ("eval", ["gif=maybe"], "'gif'"),
     ("eval", ["nosuch=1"], "unknown key 'nosuch'"),
+    ("eval", ["seeds=2000000000"], "seeds=2000000000: N runs N episodes per policy, at most"),
+    ("eval", ["seeds=[7,8,7]"], "seeds lists 7 more than once"),
+    ("eval", ['overrides=["agent.network.hidden=[32]"]'], "the stored weights fit the run's"),
+    ("eval", ['overrides=["eval.seeds=[1000000000,1000000000]"]'], "eval.seeds lists 10000"),
+    ("train", ["eval.seeds=${held_out:2000000}"], "2000000 held-out seeds (an episode each)"),
     ("eval", ['overrides=["nosuch=1"]'], "overrides: unknown key 'nosuch'"),
     ("eval", ['overrides=["agent.lr=-1"]'], "overrides: agent.lr must be a finite number > 0"),
     ("eval", ['overrides=["iterations=abc"]'], "overrides: bad value for 'iterations'"),
@@ -267,3 +272,22 @@ def test_a_sweep_is_validated_with_its_config_s_params_and_globs(tmp_path, capsy
     assert "got -5 (sweep job 2 of 2: iterations=-5" in capsys.readouterr().err
     jobs = sweep_jobs(["env=glob(he*)", "seed=0,1"])
     assert jobs == [["env=heat", "seed=0"], ["env=heat", "seed=1"]]
+
+
+def test_eval_overrides_that_change_the_observation_size_are_one_line_on_two_ranks(tmp_path):
+    """The report's stored ATP agent with a 3-spline catheter (13 inputs where it has 21): its
+    size is known once the env is built, then one line names the shapes and every rank ends
+    with status 2 (it was a 21-line traceback)."""
+    stored = ROOT / "experiments" / "results" / "atp_agent.torchrl"
+    options = ["seeds=1", "gif=false", "curve=false", "baselines=false"]
+    command = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={stored}", *options]
+    result = subprocess.run(
+        [*command, 'overrides=["observation.splines=3"]', f"hydra.run.dir={tmp_path}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2, result.stderr
+    [line] = [line for line in result.stderr.splitlines() if line.startswith("error")]
+    assert "the stored weights do not fit this env's network" in line
+    assert "[128, 21]" in line and "[128, 13]" in line and "Traceback" not in result.stderr

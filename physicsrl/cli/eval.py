@@ -37,6 +37,9 @@ def check(cfg, job) -> None:
     if cfg.fields and importlib.util.find_spec("adios2") is None:
         raise ValueError("fields=true reads the series back with adios2: pip install adios2")
     run_config({}, list(cfg.overrides))  # the keys and types; the task groups come with the run
+    for override in cfg.overrides:
+        if override.lstrip("+~").startswith("agent.network"):
+            raise ValueError(f"overrides: {override}: the stored weights fit the run's network")
 
 
 def run_config(stored: dict, overrides: list[str]):
@@ -128,6 +131,7 @@ def field_recorder(env, coordinator, path: Path):
 
 def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=None) -> None:
     from physicsrl import learning_curve
+    from physicsrl.cli.command import refuse_config
     from physicsrl.config import held_out_seeds, is_held_out, training_seeds_among
     from physicsrl.envs.env import PhysicsEnv
     from physicsrl.envs.groups import GroupedEnv
@@ -138,7 +142,11 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     from physicsrl.training import baselines, make_dojo
 
     dojo = make_dojo(train_cfg, env)
-    dojo.q_network.load_state_dict(state["q_network"])
+    try:
+        dojo.q_network.load_state_dict(state["q_network"])
+    except RuntimeError as error:  # overrides that change the observation's size
+        shapes = " ".join(str(error).split()).split("size mismatch for ")[-1]
+        refuse_config(f"overrides: the stored weights do not fit this env's network ({shapes})")
     seeds = cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds
     seeds = held_out_seeds(seeds) if isinstance(seeds, int) else [int(s) for s in seeds]
     policies = {"greedy DQN": dojo.q_network}
