@@ -82,7 +82,8 @@ def run_jobs(
 ) -> list[dict]:
     """:func:`run_episode` for each ``(policy, seed)`` of ``jobs``; the members of a batch
     (:class:`~physicsrl.envs.members.Members`: groups, replicas) share the jobs (K episodes on
-    N members take about K / N episode times) and give the same rows."""
+    N members take about K / N episode times) and give the same rows in float64 (in float32 an
+    episode's rounding can depend on which others share its steps)."""
     jobs = [(policy, int(seed)) for policy, seed in jobs]
     if not isinstance(env, Members):
         return [run_episode(env, policy, seed, action_counts) for policy, seed in jobs]
