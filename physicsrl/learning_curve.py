@@ -61,12 +61,18 @@ def job_ranks(run_dir: Path) -> int | None:
     return json.loads(summary.read_text())["summary"].get("ranks")
 
 
-def plot(run_dir: Path, path: Path, bars: Sequence[dict] = (), ranks: int | None = None):
+def plot(
+    run_dir: Path,
+    path: Path,
+    bars: Sequence[dict] = (),
+    ranks: int | None = None,
+    until: int | None = None,
+):
     """Write the figure of ``run_dir`` to ``path``: a row of panels per metric of
-    :data:`METRICS` in its ``eval.csv``, a column per cost; ``bars`` are rows with ``policy``
-    and the metrics (a ``"greedy DQN"`` row is skipped). ``ranks`` defaults to the run's
-    :func:`job_ranks`, else 1 (said in the title). Returns ``path``, or None if the run has
-    no evaluations with wall time."""
+    :data:`METRICS` in its ``eval.csv`` (its evaluations up to iteration ``until``, if given),
+    a column per cost; ``bars`` are rows with ``policy`` and the metrics (a ``"greedy DQN"``
+    row is skipped). ``ranks`` defaults to the run's :func:`job_ranks`, else 1 (said in the
+    title). Returns ``path``, or None if the run has no evaluations with wall time."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -76,7 +82,11 @@ def plot(run_dir: Path, path: Path, bars: Sequence[dict] = (), ranks: int | None
     if not evaluations.is_file():
         return None
     with evaluations.open() as stream:
-        rows = list(csv.DictReader(stream))
+        rows = [
+            r
+            for r in csv.DictReader(stream)
+            if until is None or int(r.get("iteration", 0)) <= until
+        ]
     if not rows or "wall_s" not in rows[0]:
         return None
     ranks = ranks or job_ranks(run_dir)

@@ -557,6 +557,7 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
         [*script, str(run), str(png), "--baselines", str(table)], check=True, timeout=120
     )
     assert png.stat().st_size > 10_000
+    assert curve.plot(run, png, until=0) is None  # a checkpoint before the first evaluation
     for bad, named in (
         (["--ranks", "-3"], "--ranks -3: a job has at least 1 rank"),
         (["--baselines", str(tmp_path / "nosuch.csv")], "nosuch.csv: no such file"),

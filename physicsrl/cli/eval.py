@@ -174,7 +174,8 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
         # the bars only where they were measured as the curve was: its seeds, its settings
         alike = seeds == list(state["extra"]["config"]["eval"]["seeds"]) and not cfg.overrides
         bars = means if alike else ()
-        curve = learning_curve.plot(run_dir, directory / "learning_curve.png", bars, ranks)
+        png = directory / "learning_curve.png"  # to the evaluated checkpoint's iteration
+        curve = learning_curve.plot(run_dir, png, bars, ranks, until=iterations)
         if curve is not None:
             unlike = "" if alike else " (no baselines: these seeds or settings are not the run's)"
             print(f"learning curve: {curve}{unlike}")
