@@ -129,12 +129,25 @@ def test_expected_cv_error_is_the_simulated_one(converged_cv, scheme, h):
     ``physicsrl/fem/cv_error.csv``, log-interpolated in h / width: h = 0.075 lies between two
     rows) is the one a planar front on a strip of h x h cells at dt = 0.03 (the tasks' step)
     shows against the converged speed, within 0.2 points; the explicit scheme is within 2.5 %
-    for h <= 0.1 (about 2.3 front widths, the resolved tasks' 1000 x 1000 grid)."""
-    error = front_speed(h, DT, tau_close=TAU_CLOSE, scheme=scheme) / converged_cv - 1
+    for h <= 0.1 (about 2.3 front widths, the resolved tasks' 1000 x 1000 grid). On
+    triangles (the squares cut along a diagonal) the table's is the larger in magnitude of a
+    front along their edges and one along their hypotenuses (the implicit scheme's is 2.5
+    times larger there at h = 0.2), within 0.3 points (the interpolation's error at 0.075)."""
     ratio = h * np.sqrt(2) / np.sqrt(D * TAU_IN)  # the cell diagonal against the front width
+    error = front_speed(h, DT, tau_close=TAU_CLOSE, scheme=scheme) / converged_cv - 1
     assert error == pytest.approx(expected_cv_error(scheme, ratio), abs=2e-3)
     if scheme == "explicit" and h <= 0.1:
         assert abs(error) < 0.025, error
+    triangles = [
+        front_speed(h, DT, tau_close=TAU_CLOSE, scheme=scheme, cell_type="triangle", along=along)
+        / converged_cv
+        - 1
+        for along in ("edges", "hypotenuses")
+    ]
+    worst = max(triangles, key=abs)
+    assert worst == pytest.approx(expected_cv_error(scheme, ratio, "triangle"), abs=3e-3)
+    if scheme == "implicit" and h == 0.2:
+        assert triangles[1] > 2.4 * triangles[0] > 0.1
 
 
 @pytest.mark.parametrize("cell_type", ["quadrilateral", "triangle"])

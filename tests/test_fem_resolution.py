@@ -38,12 +38,13 @@ def test_the_report_grid_reads_its_row_of_the_table(scheme):
 
 
 def test_what_the_table_does_not_cover_is_named_and_warned():
-    """Triangles, a dt longer than the table's and a mesh coarser than its coarsest row are
-    named in the report and warned about: the table's number is then a lower bound (coarser)
-    or unmeasured (triangles, dt), even where it is below 5 % (h = 0.2: +4.9 %)."""
-    fine = 100 / 500  # cell side of 500 x 500 on [-50, 50]^2: h/width 3.2
+    """A dt longer than the table's, a mesh coarser than its coarsest row and a cell type it
+    has no rows for (tetrahedra) are named in the report and warned about: the table's number
+    is then a lower bound (coarser) or unmeasured (dt, cell type), even where it is below 5 %
+    (h = 0.2: +4.9 %). Triangles have rows of their own: at h = 0.2 a front along their
+    hypotenuses is +12 % off, and the report says so and warns."""
+    fine = 100 / 500  # cell side of 500 x 500 on [-50, 50]^2: h/width 4.53
     for cells, cell_type, dt, reason in [
-        (40, "triangle", 0.03, "triangle cells, it has quadrilaterals"),
         (40, "quadrilateral", 0.5, "dt = 0.5, it has 0.03"),
         (1, "quadrilateral", 0.03, "h/width above its coarsest 37.7"),
     ]:
@@ -56,10 +57,18 @@ def test_what_the_table_does_not_cover_is_named_and_warned():
         assert reason in str(r) and reason in r.warning and "\n" not in r.warning
     coarsest = f"at least {cv_table('implicit')[1][-1]:+.1%}"
     assert coarsest in str(r) and coarsest in r.warning
-    quads = dolfinx.mesh.create_rectangle(
-        MPI.COMM_WORLD, [[0, 0], [8, 8]], [40, 40], CellType.quadrilateral
+    cube = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [1, 1, 1]], [4, 4, 4])
+    r = guard.resolution(cube, 0.013, 0.3, "implicit", 0.03)
+    assert "tetrahedron cells, it has quadrilaterals and triangles" in r.uncovered
+    quads, triangles = (
+        dolfinx.mesh.create_rectangle(MPI.COMM_WORLD, [[0, 0], [8, 8]], [40, 40], cells)
+        for cells in (CellType.quadrilateral, CellType.triangle)
     )
     assert guard.resolution(quads, 0.013, 0.3, "implicit", 0.01).warning is None
+    r = guard.resolution(triangles, 0.013, 0.3, "implicit", 0.03)
+    assert not r.uncovered
+    assert r.cv_error == pytest.approx(cv_table("implicit", "triangle")[1][4], abs=1e-4)
+    assert 0.11 < r.cv_error < 0.13 and "+12.1%" in r.warning
 
 
 def build(capsys, *overrides_per_env):
