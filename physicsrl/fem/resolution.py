@@ -10,7 +10,7 @@ dt = :data:`TABLE_DT`, and writes the table :data:`TABLE` (``cv_error.csv`` besi
 the one place the numbers live). :func:`resolution` interpolates it, linearly in
 :math:`\log(h / \text{width})`; :func:`report` prints it and warns when the error is above
 :data:`MAX_CV_ERROR`, or when the table does not cover the mesh and step: h / width beyond its
-coarsest row (the error is then at least that row's), a cell type it has no rows for, or a
+coarsest row (the error is then that row's or worse), a cell type it has no rows for, or a
 longer dt (its time-step error adds to the table's). The heat equation's counterpart is
 :class:`physicsrl.fem.heat.HeatResolution`; :func:`report` prints either.
 """
@@ -67,8 +67,8 @@ class Resolution:
 
     @property
     def expected(self) -> str:
-        """The expected CV error in words: the table's, or "at least" its coarsest row's."""
-        return f"{'at least ' if self.beyond else ''}{self.cv_error:+.1%}"
+        """The expected CV error in words: the table's, or its coarsest row's "or worse"."""
+        return f"{self.cv_error:+.1%}{' or worse' if self.beyond else ''}"
 
     @property
     def warning(self) -> str | None:
