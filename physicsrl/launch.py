@@ -13,6 +13,8 @@ from the leader, before any work.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import os
 import re
@@ -161,10 +163,24 @@ def run_hydra(config_name: str, task: Callable, arguments: list[str]) -> None:
     # Hydra takes flags first and overrides as one run of positional arguments: add ours there.
     from hydra._internal.utils import get_args_parser
 
-    parsed, unknown = get_args_parser().parse_known_args(arguments)
+    # the overrides apart, so that an optional flag value (--info) cannot take one
+    overrides = [a for a in arguments if not a.startswith("-") and ("=" in a or a[0] == "~")]
+    rest = [argument for argument in arguments if argument not in overrides]
+    with contextlib.redirect_stderr(sys.stderr if comm.rank == 0 else io.StringIO()):
+        parsed, unknown = get_args_parser().parse_known_args(rest)  # usage errors: status 2
+    modes = [
+        f"--{m}"
+        for m in ("run", "multirun", "cfg", "info", "shell_completion")
+        if getattr(parsed, m)
+    ]
+    if len(modes) > 1:  # Hydra's own refusal is a traceback
+        refuse(f"{' and '.join(modes)}: Hydra takes one of --run, --multirun (-m), --cfg, --info")
+    unknown_flags = [u for u in unknown if u.startswith("-")]
+    if unknown_flags:  # Hydra's refusal is its usage, from every rank
+        refuse(f"{unknown_flags[0]}: no such flag (--help lists them)")
     if comm.rank != 0 and any(getattr(parsed, flag) for flag in PRINT_ONLY):
         return
-    given = parsed.overrides + [u for u in unknown if not u.startswith("-")]
+    given = overrides + parsed.overrides + [u for u in unknown if not u.startswith("-")]
     flags = [argument for argument in arguments if argument not in given]
     extra = [f"hydra.job.name={config_name}"]  # names the log file
     if comm.rank != 0:

@@ -229,6 +229,8 @@ PROCESSES = [
         "mpi.ranks_per_env=2: env.model.backend=torch runs each group's env.replicas on one rank",
     ),
     (2, ["physicsrl-eval", f"run={RUN}", 'overrides=["nosuch=1"]'], "unknown key 'nosuch'"),
+    (2, ["physicsrl-train", "-m", "seed=0,1", "--cfg", "job"], "--multirun and --cfg: Hydra"),
+    (2, ["physicsrl-train", "--nosuch", "seed=1"], "--nosuch: no such flag"),
 ]
 
 

@@ -218,6 +218,9 @@ def test_print_only_flags_print_once_under_two_ranks(tmp_path):
     assert config.returncode == 0 and config.stdout.count("calls: 200000") == 1, config.stdout
     info = run([bench, "ping", "--info"], cwd=tmp_path, timeout=60)
     assert info.returncode == 0 and "Defaults List" in info.stdout, info.stderr
+    # an override after --info is not taken for its value (argparse's usage, once per rank)
+    info = run([bench, "ping", "--info", "calls=10", "mpi.ranks=2"], cwd=tmp_path, timeout=60)
+    assert info.returncode == 0 and info.stdout.count("Defaults List") == 1, info.stderr
 
 
 def test_configs_are_found_from_a_built_wheel(tmp_path):
