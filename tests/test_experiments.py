@@ -2,6 +2,7 @@
 
 import csv
 import json
+import os
 import runpy
 import subprocess
 import sys
@@ -112,6 +113,39 @@ def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
     assert "export SLURM_MPI_TYPE=pmix" in hydra
 
 
+def fake_slurm(directory: Path, ping_status: int) -> None:
+    """``sbatch`` and ``scontrol`` in ``directory``: ``scontrol ping`` says the controller is
+    up (status 0) or down (else), as Slurm's does."""
+    directory.mkdir(parents=True, exist_ok=True)
+    said = "UP" if ping_status == 0 else "DOWN\n****\n** RESTORE SLURMCTLD DAEMON **\n****"
+    for name, body in (
+        ("sbatch", "exit 0"),
+        ("scontrol", f"echo 'Slurmctld(primary) at vm is {said}'; exit {ping_status}"),
+    ):
+        (directory / name).write_text(f"#!/bin/sh\n{body}\n")
+        (directory / name).chmod(0o755)
+
+
+def test_a_slurm_sweep_where_slurm_cannot_take_it_is_one_line(capsys, monkeypatch, tmp_path):
+    """``+cluster=slurm`` where there is no sbatch, or its controller does not answer: one
+    line before anything is submitted (it was submitit's 46-line traceback)."""
+    from physicsrl.cli.command import validate_or_exit
+    from physicsrl.cli.train import check_task
+
+    fake_slurm(tmp_path / "down", ping_status=1)
+    (tmp_path / "none").mkdir()
+    for path, named in (
+        (tmp_path / "none", "submits with sbatch, not on this PATH"),
+        (tmp_path / "down", "does not answer (scontrol ping: Slurmctld(primary) at vm is DOWN)"),
+    ):
+        monkeypatch.setenv("PATH", str(path))
+        with pytest.raises(SystemExit) as exit_:
+            validate_or_exit("train", ["-m", "+cluster=slurm", "seed=0,1"], check_task)
+        assert exit_.value.code == 2
+        [line] = capsys.readouterr().err.splitlines()
+        assert named in line, line
+
+
 def test_a_slurm_sweep_is_checked_against_its_jobs_not_the_submitting_process(
     capsys, monkeypatch, tmp_path
 ):
@@ -122,6 +156,8 @@ def test_a_slurm_sweep_is_checked_against_its_jobs_not_the_submitting_process(
     from physicsrl.cli.command import validate_or_exit
     from physicsrl.cli.train import check_task
 
+    fake_slurm(tmp_path / "bin", ping_status=0)
+    monkeypatch.setenv("PATH", f"{tmp_path / 'bin'}:{os.environ['PATH']}")
     slurm = ["-m", "+cluster=slurm", "hydra.launcher.tasks_per_node=64"]
     validate_or_exit(
         "train", [*slurm, "mpi.ranks_per_env=8", "+experiment=atp_resolved"], check_task

@@ -11,6 +11,8 @@ checks, so that a bad command line is answered in about a second.
 from __future__ import annotations
 
 import dataclasses
+import shutil
+import subprocess
 import sys
 from collections.abc import Callable
 from typing import NoReturn
@@ -146,7 +148,26 @@ def job_place(launcher) -> Job:
         )
     if not target.endswith("SlurmLauncher"):
         return Job.local()
+    check_slurm_answers()
     return Job(int(launcher.nodes) * int(launcher.tasks_per_node), here=False)
+
+
+def check_slurm_answers() -> None:
+    """ValueError in one line unless this machine can submit to a running Slurm: ``sbatch`` on
+    the PATH and the controller answering ``scontrol ping`` (else submitit's traceback)."""
+    launcher = "hydra/launcher=submitit_slurm (+cluster=slurm)"
+    if shutil.which("sbatch") is None:
+        raise ValueError(f"{launcher} submits with sbatch, not on this PATH: run it on the cluster")
+    try:
+        ping = subprocess.run(["scontrol", "ping"], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise ValueError(f"{launcher}: scontrol ping failed ({error})") from None
+    if ping.returncode != 0:
+        said = [line for line in (ping.stdout + ping.stderr).splitlines() if line[:1] not in "* "]
+        raise ValueError(
+            f"{launcher}: the Slurm controller does not answer (scontrol ping: "
+            f"{said[-1].strip() if said else f'status {ping.returncode}'})"
+        )
 
 
 def sweep_jobs(overrides: list[str]) -> list[list[str]]:
