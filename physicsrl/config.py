@@ -20,6 +20,7 @@ the two kinds apart in any member.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import enum
 import typing
@@ -70,7 +71,7 @@ def check_seed_list(name: str, seeds: list) -> None:
     """ValueError naming ``name`` unless ``seeds`` are integers >= 0, each once."""
     for i, seed in enumerate(seeds):
         integer(f"{name}[{i}]", seed, 0)
-    repeated = sorted({int(s) for s in seeds if seeds.count(s) > 1})
+    repeated = [seed for seed, count in collections.Counter(map(int, seeds)).items() if count > 1]
     if repeated:
         raise ValueError(f"{name} lists {repeated[0]} more than once (one episode per seed)")
 

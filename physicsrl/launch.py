@@ -164,7 +164,7 @@ def run_hydra(config_name: str, task: Callable, arguments: list[str]) -> None:
     from hydra._internal.utils import get_args_parser
 
     # the overrides apart, so that an optional flag value (--info) cannot take one
-    overrides = [a for a in arguments if not a.startswith("-") and ("=" in a or a[0] == "~")]
+    overrides = [a for a in arguments if not a.startswith("-") and ("=" in a or a[:1] == "~")]
     rest = [argument for argument in arguments if argument not in overrides]
     with contextlib.redirect_stderr(sys.stderr if comm.rank == 0 else io.StringIO()):
         parsed, unknown = get_args_parser().parse_known_args(rest)  # usage errors: status 2
