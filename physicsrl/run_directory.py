@@ -19,35 +19,45 @@ class WritableRunDirectory(Callback):
     the leader checks that the run (or sweep) directory can be written, and, for a new
     training run (``resume`` unset) or an evaluation (``run`` set), that it holds no training
     run's checkpoints (Hydra would write into it: a new run's checkpoints would mix with the
-    other's, an evaluation would replace the run's ``eval.csv`` and ``.hydra/``); if not,
-    every rank ends with status 2 and one line naming the directory, instead of the leader
-    failing in Hydra's log setup while the followers wait for it."""
+    other's, an evaluation would replace the run's ``eval.csv`` and ``.hydra/``), and for an
+    evaluation no earlier evaluation's results (its GIF or fields would stay beside the new
+    tables); if not, every rank ends with status 2 and one line naming the directory, instead
+    of the leader failing in Hydra's log setup while the followers wait for it."""
 
     def on_run_start(self, config, **kwargs) -> None:
-        fresh = ("resume" in config and not config.resume) or "run" in config
-        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir, fresh and RUN)
+        evaluation = "run" in config
+        taken = {}
+        if evaluation or ("resume" in config and not config.resume):
+            taken[RUN] = CHECKPOINTS
+        if evaluation:
+            taken["eval_summary.csv"] = "an earlier evaluation's results; name a new directory"
+        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir, taken)
 
     def on_multirun_start(self, config, **kwargs) -> None:
         new_runs = "resume" in config and not config.resume
-        agree_directory_is_writable("hydra.sweep.dir", config.hydra.sweep.dir, new_runs and JOBS)
+        taken = {JOBS: CHECKPOINTS} if new_runs else {}
+        agree_directory_is_writable("hydra.sweep.dir", config.hydra.sweep.dir, taken)
 
 
 RUN, JOBS = "checkpoints/ckpt-*", "*/checkpoints/ckpt-*"  # a run's, a sweep's checkpoints
+CHECKPOINTS = (
+    "a training run's checkpoints; resume=true continues it, a new run or an evaluation needs "
+    "another directory"
+)
 
 
-def agree_directory_is_writable(key: str, directory: str, taken: str | bool = False) -> None:
+def agree_directory_is_writable(key: str, directory: str, taken: dict[str, str]) -> None:
     """The leader creates ``directory`` and writes a byte there, and looks for files matching
-    ``taken`` (a glob pattern, if any) in it; every rank learns the outcome (collective) and
-    refuses to go on if the write failed or such a file is there."""
+    the glob patterns of ``taken`` in it; every rank learns the outcome (collective) and
+    refuses to go on if the write failed or such a file is there (the line says ``taken``'s
+    value: what the file is)."""
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
     problem = None
-    if comm.rank == 0 and taken and next(Path(directory).glob(taken), None):
-        problem = (
-            f"{key}={directory}: it holds a training run's checkpoints; resume=true continues "
-            "it, a new run or an evaluation needs another directory"
-        )
+    found = [] if comm.rank else [w for p, w in taken.items() if next(Path(directory).glob(p), 0)]
+    if found:
+        problem = f"{key}={directory}: it holds {found[0]}"
     elif comm.rank == 0:
         probe = Path(directory) / ".physicsrl-write-test"
         try:

@@ -165,30 +165,41 @@ def test_a_new_run_refuses_a_directory_that_holds_another_runs_checkpoints(tmp_p
     """A new training run or sweep, or an evaluation, into a directory with checkpoints ends
     every rank in one line before Hydra writes there (the runs' checkpoints mixed: an
     evaluation then read the other run's policy; an evaluation replaced the run's eval.csv,
-    its learning curve); resume=true is how to continue it."""
+    its learning curve); resume=true is how to continue it. An evaluation into an earlier
+    one's directory too (its GIF stayed beside the new tables)."""
     train = [str(BIN / "physicsrl-train"), "iterations=1", "env.mesh.cells=8"]
+    evaluate = [str(BIN / "physicsrl-eval"), f"run={tmp_path / 'run'}"]
     for directory, where in ((tmp_path / "run", "."), (tmp_path / "sweep", "1")):
         checkpoints = directory / where / "checkpoints"
         checkpoints.mkdir(parents=True)
         (checkpoints / "ckpt-000000000002.torchrl").write_text("")
     (tmp_path / "run" / "eval.csv").write_text("iteration,return\n2,1.0\n")
+    (tmp_path / "evaluated").mkdir()
+    (tmp_path / "evaluated" / "eval_summary.csv").write_text("policy,return\n")
+    checkpoints = "holds a training run's checkpoints; resume=true continues it"
     runs = [
-        ("hydra.run.dir", [*train, f"hydra.run.dir={tmp_path / 'run'}", "mpi.ranks=2"]),
-        ("hydra.sweep.dir", [*train, "-m", "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}"]),
         (
             "hydra.run.dir",
-            [
-                str(BIN / "physicsrl-eval"),
-                f"run={tmp_path / 'run'}",
-                f"hydra.run.dir={tmp_path / 'run'}",
-            ],
+            [*train, f"hydra.run.dir={tmp_path / 'run'}", "mpi.ranks=2"],
+            checkpoints,
+        ),
+        (
+            "hydra.sweep.dir",
+            [*train, "-m", "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+            checkpoints,
+        ),
+        ("hydra.run.dir", [*evaluate, f"hydra.run.dir={tmp_path / 'run'}"], checkpoints),
+        (
+            "hydra.run.dir",
+            [*evaluate, f"hydra.run.dir={tmp_path / 'evaluated'}"],
+            "holds an earlier evaluation's results",
         ),
     ]
-    for key, command in runs:
+    for key, command, named in runs:
         result = run(command, cwd=tmp_path)
         assert result.returncode == 2, result.stderr
         [line] = result.stderr.splitlines()
-        assert line.startswith(f"error: {key}=") and "holds a training run's checkpoints" in line
+        assert line.startswith(f"error: {key}=") and named in line, line
     assert not (tmp_path / "run" / ".hydra").exists()
     assert (tmp_path / "run" / "eval.csv").read_text() == "iteration,return\n2,1.0\n"
 
