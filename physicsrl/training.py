@@ -31,7 +31,7 @@ import torch
 from mpi4py import MPI
 
 from physicsrl import builders
-from physicsrl.checkpoint import Checkpoints, find_run
+from physicsrl.checkpoint import Checkpoints, find_run, read
 from physicsrl.config import TrainConfig, as_dict, typed
 from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.groups import environments
@@ -64,6 +64,7 @@ def train(cfg) -> None:
             if config.resume not in (None, False):
                 resume_dir = find_run(resume_request(str(config.resume), run_dir), run_dir.parent)
                 resume = Checkpoints(resume_dir / "checkpoints", 1).newest_readable()
+                check_same_task(read(resume, ["extra"])["extra"].get("config", {}), as_dict(config))
             log_dir = run_dir if resume is None else resume.parent.parent
             Checkpoints(log_dir / "checkpoints", config.checkpoint.keep).check_writable()
         except (OSError, ValueError) as problem:
@@ -210,6 +211,23 @@ def check_environments(before: int, n_envs: int) -> None:
             file=sys.stderr,
         )
         raise SystemExit(2)
+
+
+TASK_KEYS = ("env.name", "env.module", "observation.name", "reward.name")
+"""What a resumed run may not change: its buffer and network are the task's."""
+
+
+def check_same_task(old: dict, new: dict) -> None:
+    """ValueError naming the first of :data:`TASK_KEYS` in which the config ``new`` of a resume
+    differs from its checkpoint's ``old`` (other settings may change: a warning each)."""
+    for key in TASK_KEYS:
+        section, name = key.split(".")
+        before, after = old.get(section, {}).get(name), new.get(section, {}).get(name)
+        if before != after:
+            raise ValueError(
+                f"resume: {key}={after} where the checkpoint's run has {before}: a resume goes "
+                "on with the run's task (give its +experiment or env, observation and reward)"
+            )
 
 
 def warn_differences(old: dict, new: dict, prefix: str = "") -> None:

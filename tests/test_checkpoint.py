@@ -92,6 +92,15 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
         "mpi.ranks_per_env): resume with the same number"
     ]
     assert not (tmp_path / "two" / "resumed.txt").exists()
+    # another task: refused before anything is built (it trained the other task on the run's
+    # buffer and network, warning about each setting)
+    other = [TRAIN, *SHORT, "env=ms", f"resume={first}", f"hydra.run.dir={tmp_path / 'other'}"]
+    result = run(other, tmp_path)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert result.stderr.splitlines() == [
+        "error: resume: env.name=atp where the checkpoint's run has heat: a resume goes on with "
+        "the run's task (give its +experiment or env, observation and reward)"
+    ]
 
     for path in checkpoints.paths():
         truncate(path, 0.9)
