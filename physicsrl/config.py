@@ -76,6 +76,16 @@ def check_seed_list(name: str, seeds: list) -> None:
         raise ValueError(f"{name} lists {repeated[0]} more than once (one episode per seed)")
 
 
+def check_sweep_resume(resume) -> None:
+    """ValueError unless ``resume`` suits every job of a sweep: unset, or true (each job its
+    own run), not one run directory named for all."""
+    if resume not in (None, False, True) and str(resume).lower() not in ("true", "false", "null"):
+        raise ValueError(
+            f"resume={resume}: in a sweep every job would continue that one run; resume=true "
+            "continues each job's own run (with the earlier sweep's hydra.sweep.dir)"
+        )
+
+
 def is_held_out(seed: int | None) -> bool:
     """Whether an env seeded with ``seed`` runs held-out episodes: a held-out seed, a member's
     seed derived from one, or None (unseeded). Tasks that draw training episodes from a fixed

@@ -32,7 +32,7 @@ from mpi4py import MPI
 
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, find_run, read
-from physicsrl.config import TrainConfig, as_dict, typed
+from physicsrl.config import TrainConfig, as_dict, check_sweep_resume, typed
 from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.groups import environments
 from physicsrl.envs.members import Members
@@ -92,11 +92,7 @@ def resume_request(resume: str, run_dir: Path) -> str:
     job its own run directory; ValueError for one run directory named for every job."""
     if not sweeping():
         return resume
-    if resume.lower() != "true":
-        raise ValueError(
-            f"resume={resume}: in a sweep every job would continue that one run; resume=true "
-            "continues each job's own run (with the earlier sweep's hydra.sweep.dir)"
-        )
+    check_sweep_resume(resume)
     return str(run_dir)
 
 

@@ -218,7 +218,9 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
         assert not (sweep / job / "resumed.txt").exists()
     one_run = train_sweep(f"resume={sweep / '0'}", f"hydra.sweep.dir={tmp_path / 'other'}")
     assert one_run.returncode == 2
-    assert one_run.stderr.strip().endswith("(with the earlier sweep's hydra.sweep.dir)")
+    [line] = one_run.stderr.splitlines()
+    assert "continues each job's own run (with the earlier sweep's hydra.sweep.dir)" in line
+    assert not (tmp_path / "other").exists()  # refused before the sweep started
 
 
 def test_collect_tables_jobs_without_baselines_or_evaluations(tmp_path):

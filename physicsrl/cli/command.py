@@ -83,6 +83,8 @@ def validate_or_exit(config_name: str, overrides: list[str], check: Callable) ->
     comma-separated values) before any starts; nothing with
     Hydra's print-only flags. On error the leader prints one line (naming the sweep's job) and
     every rank exits with status 2 (all ranks see the same config, so no rank waits)."""
+    from physicsrl.config import check_sweep_resume
+
     flags = {o for o in overrides if o.startswith("-")}
     if not flags <= MULTIRUN:
         return
@@ -91,7 +93,9 @@ def validate_or_exit(config_name: str, overrides: list[str], check: Callable) ->
         jobs, place = sweep(config_name, arguments) if flags else ([arguments], Job.local())
         for number, job in enumerate(jobs, 1):
             try:
-                validate(config_name, job, check, place)
+                cfg = validate(config_name, job, check, place)
+                if flags and "resume" in cfg:
+                    check_sweep_resume(cfg.resume)
             except ValueError as error:
                 if not flags:
                     raise
@@ -109,9 +113,9 @@ def refuse_config(error: ValueError | str) -> NoReturn:
     refuse(f"bad config: {' '.join(str(message).split())}")
 
 
-def validate(config_name: str, overrides: list[str], check: Callable, place: Job) -> None:
+def validate(config_name: str, overrides: list[str], check: Callable, place: Job):
     """Compose, type (a config with a schema) and ``check(cfg, place)`` the config of
-    ``overrides``, a job that runs at ``place``; ValueError with one line."""
+    ``overrides``, a job that runs at ``place``; return it. ValueError with one line."""
     from physicsrl.config import typed
 
     try:
@@ -123,6 +127,7 @@ def validate(config_name: str, overrides: list[str], check: Callable, place: Job
         raise
     except Exception as error:  # noqa: BLE001 - OmegaConf's errors name the key
         raise ValueError(one_line(error)) from error
+    return cfg
 
 
 def sweep(config_name: str, overrides: list[str]) -> tuple[list[list[str]], Job]:
