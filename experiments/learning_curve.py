@@ -29,7 +29,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.ranks is not None and args.ranks < 1:
         parser.error(f"--ranks {args.ranks}: a job has at least 1 rank")
-    missing = [str(p) for p in (*args.baselines, args.out.parent) if not p.exists()]
+    missing = [str(p) for p in (args.run, *args.baselines, args.out.parent) if not p.exists()]
     if missing:
         parser.error(f"{missing[0]}: no such file or directory")
     try:

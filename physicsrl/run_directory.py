@@ -35,7 +35,7 @@ class WritableRunDirectory(Callback):
 
     def on_multirun_start(self, config, **kwargs) -> None:
         new_runs = "resume" in config and not config.resume
-        taken = {JOBS: CHECKPOINTS} if new_runs else {}
+        taken = {JOBS: SWEEP_CHECKPOINTS} if new_runs else {}
         agree_directory_is_writable("hydra.sweep.dir", config.hydra.sweep.dir, taken)
 
 
@@ -43,6 +43,10 @@ RUN, JOBS = "checkpoints/ckpt-*", "*/checkpoints/ckpt-*"  # a run's, a sweep's c
 CHECKPOINTS = (
     "a training run's checkpoints; resume=true continues it, a new run or an evaluation needs "
     "another directory"
+)
+SWEEP_CHECKPOINTS = (
+    "training runs' checkpoints in its subdirectories; resume=true continues a sweep there, a "
+    "new sweep needs another directory"
 )
 
 

@@ -141,9 +141,10 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     if n != groups:  # replicas: a group is a batch of them
         layout = f"{n} environments ({groups} group{plural(groups)} of {n // groups} replicas)"
     log.info(
-        "%s (%d ranks); run directory %s; training to iteration %d",
+        "%s (%d rank%s); run directory %s; training to iteration %d",
         layout,
         ranks,
+        plural(ranks),
         log_dir,
         config.iterations,
     )

@@ -605,6 +605,9 @@ def test_learning_curve_against_steps_wall_clock_and_core_hours(tmp_path):
             [*script, str(run), str(png), *bad], capture_output=True, text=True, timeout=120
         )
         assert result.returncode == 2 and named in result.stderr.splitlines()[-1], result.stderr
+    missing = [*script, str(tmp_path / "nosuch"), str(png)]
+    result = subprocess.run(missing, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "nosuch: no such file or directory" in result.stderr
 
 
 def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):

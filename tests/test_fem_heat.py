@@ -221,6 +221,9 @@ def test_resolution_report_converges_under_refinement():
     assert coarse.warning is None
     assert f"{coarse.errors[np.abs(coarse.errors).argmax()]:+.2%}" in str(coarse)
     assert "h = 0.113, dt = 0.01" in str(coarse) and "\n" not in str(coarse)
+    long_step = resolution(HeatEnvironment(Coordinator(), square(50), dt=0.1), 2.0, times)
+    worst = long_step.errors[np.abs(long_step.errors).argmax()]
+    assert 0.07 < worst < 0.08 and f"off by up to {worst:+.2%}, above 5%" in long_step.warning
     with pytest.raises(ValueError, match="extent: the mesh is not the square"):
         resolution(env, 1.0, times)
 

@@ -186,7 +186,7 @@ def test_a_new_run_refuses_a_directory_that_holds_another_runs_checkpoints(tmp_p
         (
             "hydra.sweep.dir",
             [*train, "-m", "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
-            checkpoints,
+            "holds training runs' checkpoints in its subdirectories; resume=true continues a sweep",
         ),
         ("hydra.run.dir", [*evaluate, f"hydra.run.dir={tmp_path / 'run'}"], checkpoints),
         (

@@ -225,9 +225,10 @@ class HeatResolution:
         """The one-line warning if :attr:`error` exceeds :data:`MAX_TRANSIENT_ERROR`."""
         if self.error <= MAX_TRANSIENT_ERROR:
             return None
+        worst = float(self.errors[np.abs(self.errors).argmax()])
         return (
             f"the mesh and time step do not resolve the transient (its integral off by up to "
-            f"{self.error:.0%}, above {MAX_TRANSIENT_ERROR:.0%}): refine env.dt or env.mesh.cells"
+            f"{worst:+.2%}, above {MAX_TRANSIENT_ERROR:.0%}): refine env.dt or env.mesh.cells"
         )
 
     def __str__(self) -> str:
