@@ -169,6 +169,7 @@ ROWS = [
     ("train", ["-m", "agent.lr=1e-3,inf"], "agent.lr must be a finite number > 0, got inf"),
     ("train", ["-m", "seed=0,1", "foo=1"], "unknown key 'foo'"),
     ("train", ["-m", "seed=0,1", "resume=/x"], "resume=/x: in a sweep every job would continue"),
+    ("train", ["+cluster=slurm"], "SlurmLauncher (hydra/launcher) submits sweeps only: add -m"),
     ("train", ["-m", "agent.network.hidden=[64],[0]"], "agent.network.hidden[0] must be"),
     ("train", ["--multirun", "env=heat,ms", "observation=catheter"], "does not fit the heat task"),
     ("bench_ping", ["-m", "calls=10,0"], "calls=0: must be an integer >= 1 (sweep job 2"),

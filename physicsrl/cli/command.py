@@ -90,7 +90,11 @@ def validate_or_exit(config_name: str, overrides: list[str], check: Callable) ->
         return
     arguments = [o for o in overrides if o not in flags]
     try:
-        jobs, place = sweep(config_name, arguments) if flags else ([arguments], Job.local())
+        jobs, place = (
+            sweep(config_name, arguments)
+            if flags
+            else ([arguments], run_place(config_name, arguments))
+        )
         for number, job in enumerate(jobs, 1):
             try:
                 cfg = validate(config_name, job, check, place)
@@ -137,6 +141,18 @@ def sweep(config_name: str, overrides: list[str]) -> tuple[list[list[str]], Job]
     settings = compose(config_name, sweep_jobs(overrides)[0], hydra=True).hydra
     params = [f"{key}={value}" for key, value in (settings.sweeper.params or {}).items()]
     return sweep_jobs([*params, *overrides]), job_place(settings.launcher)
+
+
+def run_place(config_name: str, overrides: list[str]) -> Job:
+    """Where a run (no ``-m``) runs: here; ValueError if its config picks a submitit launcher,
+    which Hydra uses for sweeps only (the run would run here, unsaid)."""
+    target = str(compose(config_name, overrides, hydra=True).hydra.launcher.get("_target_", ""))
+    if "submitit" in target:
+        raise ValueError(
+            f"{target.rsplit('.', 1)[-1]} (hydra/launcher) submits sweeps only: add -m to submit "
+            "this run as a sweep of one job"
+        )
+    return Job.local()
 
 
 def job_place(launcher) -> Job:
