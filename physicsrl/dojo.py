@@ -206,6 +206,7 @@ class Dojo:
         iterations = config.iterations if iterations is None else iterations
         check_seeds(config.seed, iterations, self.eval_seeds)
         self._open_logs()
+        started, sent, phases = time.perf_counter(), self._broadcast_s(), self._phases()
         collector = self._collector = Collector(
             TransformedEnv(self.env, RewardSum()),  # each episode's return so far
             self.exploration,
@@ -215,6 +216,7 @@ class Dojo:
             pre_collect_hook=self._seed_next_batch,
             auto_register_policy_transforms=False,
         )
+        self._account_simulation(started, sent, phases)  # the collector's first reset
         if self._pending_rng is not None:  # after the collector's own initial reset
             self._set_rng_state(self._pending_rng)
             self._pending_rng = None
@@ -226,15 +228,7 @@ class Dojo:
                 # 1. collect a batch with the exploration policy (the simulation runs here)
                 started, sent, phases = time.perf_counter(), self._broadcast_s(), self._phases()
                 data = next(batches).exclude("collector")
-                collect_s = time.perf_counter() - started
-                coordination_s = self._broadcast_s() - sent
-                self._add_time("coordination", coordination_s)
-                self._add_time("simulation", collect_s - coordination_s)
-                for phase, after in self._phases().items():
-                    total = self.counters.simulated.get(phase, (0.0, 0, 0))
-                    self.counters.simulated[phase] = tuple(
-                        t + a - b for t, a, b in zip(total, after, phases[phase], strict=True)
-                    )
+                collect_s = self._account_simulation(started, sent, phases)
                 returns = self._record_batch(data)
                 self.exploration[-1].step(data.numel())  # anneal epsilon
                 if len(self.action_costs):
@@ -564,6 +558,22 @@ class Dojo:
         if self.history:
             postfix["eval"] = f"{self.history[-1]['return']:.3g}"
         return postfix
+
+    def _account_simulation(self, started: float, sent: float, phases: dict) -> float:
+        """Add the seconds since ``started`` to the simulation time, less the leader's seconds
+        sending calls since it had sent ``sent`` (coordination time), and the env's phases
+        since ``phases`` to :attr:`Counters.simulated`; return the seconds."""
+        seconds = time.perf_counter() - started
+        coordination_s = self._broadcast_s() - sent
+        self._add_time("coordination", coordination_s)
+        self._add_time("simulation", seconds - coordination_s)
+        for phase, after in self._phases().items():
+            total = self.counters.simulated.get(phase, (0.0, 0, 0))
+            before = phases.get(phase, (0.0, 0, 0))
+            self.counters.simulated[phase] = tuple(
+                t + a - b for t, a, b in zip(total, after, before, strict=True)
+            )
+        return seconds
 
     def _add_time(self, phase: str, seconds: float) -> None:
         self.counters.time_s[phase] = self.counters.time_s.get(phase, 0.0) + seconds

@@ -122,6 +122,42 @@ def test_dojo_learns_a_known_optimum(n_steps, action_costs, optimum):
     assert charged.all() if action_costs else not charged.any()
 
 
+def test_the_collectors_first_reset_is_counted_as_simulation():
+    """The env's phases (``simulated``: seconds, replica-steps, batch-steps, as the torch
+    replicas report them) during training are all in the Dojo's counters, the collector's
+    first reset included (an induction there, on the ATP task, was missing from the summary's
+    simulation time and phases), and the evaluations' are not."""
+    sys.path.insert(0, str(TOY.parent))
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl import config as c
+    from physicsrl.builders import make_q_network
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+
+    class CountedResets(ToyChainEnv):
+        def _reset(self, tensordict=None, **kwargs):
+            seconds, resets, batches = self.simulated["reset"]
+            self.simulated["reset"] = (seconds + 0.25, resets + 1, batches + 1)
+            return super()._reset(tensordict, **kwargs)
+
+    coordinator = Coordinator()
+    env = CountedResets(coordinator, length=3)
+    env.simulated = {"reset": (0.0, 0, 0)}
+    config = c.TrainConfig(
+        collector=c.CollectorConfig(frames_per_batch=4),
+        optim=c.OptimConfig(learning_starts=1000),
+        eval=c.Evaluation(every=0, seeds=[1000000000, 1000000001]),
+        logger=c.LoggerConfig(progress=False),
+    )
+    with coordinator:
+        dojo = Dojo(make_q_network(env, config.agent.network), env, config)
+        summary = dojo.train(3)
+    _, resets, _ = env.simulated["reset"]
+    assert summary["simulated"]["reset"] == (0.25 * (resets - 2), resets - 2, resets - 2)
+    assert summary["time_s"]["simulation"] >= 0.0 and resets - 2 >= 4  # first + one per batch
+
+
 def test_training_goes_on_from_a_training_seed_after_an_evaluation():
     """With episodes running across batches (``reset_at_each_iter: false``) the evaluation
     reseeds the env with held-out seeds; training then goes on from the generator of
