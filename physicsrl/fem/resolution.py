@@ -18,6 +18,7 @@ longer dt (its time-step error adds to the table's). The heat equation's counter
 from __future__ import annotations
 
 import csv
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -102,9 +103,10 @@ class Resolution:
         )
 
 
+@functools.cache  # read once per process: every simulator's construction asks
 def cv_table(scheme: str, cell_type: str = "quadrilateral") -> tuple[np.ndarray, np.ndarray]:
     """(h / width ascending, CV error) of ``scheme`` on ``cell_type`` from :data:`TABLE` (empty
-    arrays for a cell type it has no rows for)."""
+    arrays for a cell type it has no rows for; read-only)."""
     with TABLE.open() as table:
         rows = [
             row
@@ -112,10 +114,10 @@ def cv_table(scheme: str, cell_type: str = "quadrilateral") -> tuple[np.ndarray,
             if (row["scheme"], row["cell_type"]) == (scheme, cell_type)
         ]
     rows.sort(key=lambda row: float(row["h_over_width"]))
-    return (
-        np.array([float(row["h_over_width"]) for row in rows]),
-        np.array([float(row["cv_error"]) for row in rows]),
-    )
+    ratios = np.array([float(row["h_over_width"]) for row in rows])
+    errors = np.array([float(row["cv_error"]) for row in rows])
+    ratios.flags.writeable = errors.flags.writeable = False  # shared by the cache's callers
+    return ratios, errors
 
 
 def expected_cv_error(scheme: str, ratio: float, cell_type: str = "quadrilateral") -> float:
