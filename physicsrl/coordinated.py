@@ -254,7 +254,7 @@ class Coordinator:
         self.comm = comm
         self.rank = comm.rank
         self.size = comm.size
-        self._channel = comm.Dup() if comm.size > 1 else comm
+        self._channel = comm  # a duplicate of comm inside the with-block (__enter__)
         self._oversubscribed = False  # more ranks on this node than cores: yield when polling
         if comm.size > 1:
             on_this_node = comm.Split_type(MPI.COMM_TYPE_SHARED)
@@ -535,6 +535,9 @@ class Coordinator:
         if self._local and not self.check:
             for obj in self.objects.values():
                 _bind_directly(obj)
+        # A communicator of its own, so that the calls' messages never match the user's; freed
+        # when the block ends (MPI has a few thousand communicators per process).
+        self._channel = self.comm.Dup() if self.size > 1 else self.comm
         # Persistent requests: a third of the cost of a fresh Send/Irecv per message.
         self._sending = [self._channel.Send_init(self._message, c, _TAG) for c in self._children]
         if self.size > 1:
@@ -566,6 +569,9 @@ class Coordinator:
             if request:
                 request.Free()
         self._sending, self._receiving, self._done, self._watchdog = [], None, None, None
+        if self._channel is not self.comm:
+            self._channel.Free()
+            self._channel = self.comm
         if self._local:
             for obj in self.objects.values():
                 _unbind(obj)

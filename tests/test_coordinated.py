@@ -118,6 +118,13 @@ def test_coordinators_on_split_communicators_work_side_by_side(mpi):
     assert "ok" in mpi(4, "tests/mpi_scripts/coord_misc.py", "side-by-side", timeout=60).stderr
 
 
+def test_coordinators_free_their_communicator_so_a_process_can_make_thousands(mpi):
+    """Each with-block duplicates the communicator and frees it when it ends: 3000 coordinators
+    in one process (MPICH has about 2040 communicators), one of them entered twice; and 3000
+    ``environments`` blocks, which free their group leaders' communicator."""
+    assert "ok" in mpi(2, "tests/mpi_scripts/coord_misc.py", "many", timeout=120).stderr
+
+
 def test_sequence_check_reports_the_first_divergence(mpi):
     result = mpi(2, "tests/mpi_scripts/coord_misc.py", "divergence", timeout=30, check=False)
     assert result.returncode != 0

@@ -257,3 +257,5 @@ def environments(
             yield None
         else:
             yield None
+    if layout.leaders != MPI.COMM_NULL:  # a few thousand communicators per process
+        layout.leaders.Free()

@@ -1,5 +1,5 @@
-"""Side-by-side coordinators (and their time sending calls), sequence checking and idle CPU
-(argv[1] picks the case)."""
+"""Side-by-side coordinators (and their time sending calls), sequence checking, idle CPU and
+many coordinators in one process (argv[1] picks the case)."""
 
 import sys
 import time
@@ -7,6 +7,7 @@ import time
 from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinated, Coordinator, SequenceDivergence, parallel
+from physicsrl.envs.groups import environments
 
 comm = MPI.COMM_WORLD
 case = sys.argv[1]
@@ -73,3 +74,20 @@ elif case == "idle":
     shares = comm.gather(share, root=0)
     if comm.rank == 0:
         print(f"follower cpu {max(shares[1:]):.4f}", file=sys.stderr)
+
+elif case == "many":
+    # more coordinators, one after the other, than MPICH has communicators (~2040 per process):
+    # each frees its own at the end of its with-block; a coordinator is used twice
+    for i in range(3000):
+        coordinator = Coordinator()
+        node = Node(coordinator)
+        for _ in range(1 if i else 2):
+            with coordinator:
+                if coordinator.is_leader():
+                    node.record(i)
+    assert node.seen == [2999], node.seen
+    for i in range(3000):  # and as many one-group layouts, each with its communicators
+        with environments(lambda coordinator: Node(coordinator), comm.size) as env:
+            if env is not None:
+                env.record(i)
+    print("ok", file=sys.stderr)
