@@ -52,13 +52,14 @@ import operator
 import os
 import pickle
 import reprlib
+import signal
 import struct
 import sys
 import threading
 import time
 import traceback
 from collections.abc import Callable, Hashable
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 from mpi4py import MPI
@@ -136,20 +137,31 @@ def wait_for(
 
 def _fail(comm: MPI.Comm, where: str | None) -> None:
     """Print the current exception's traceback (unless ``where`` is None) and end every rank
-    of ``comm``."""
+    of ``comm``; a KeyboardInterrupt (Ctrl-C) is one line and status :data:`INTERRUPTED`."""
+    if isinstance(sys.exc_info()[1], KeyboardInterrupt):
+        _interrupt(comm, "interrupted in a parallel call" if where else None)
     if where is not None:
         sys.stderr.write(f"[rank {comm.rank}] {where}:\n{traceback.format_exc()}")
         sys.stderr.flush()
     _abort(comm)
 
 
-def _abort(comm: MPI.Comm) -> None:
-    """End every rank of ``comm`` with status 1, after what this rank printed about why; its
+def _interrupt(comm: MPI.Comm, why: str | None) -> NoReturn:
+    """End every rank of ``comm`` with status :data:`INTERRUPTED`, saying ``why`` (unless
+    None) in one line."""
+    if why is not None:
+        sys.stderr.write(f"[rank {comm.rank}] {why}: every rank exits with status {INTERRUPTED}\n")
+        sys.stderr.flush()
+    _abort(comm, INTERRUPTED)
+
+
+def _abort(comm: MPI.Comm, status: int = 1) -> NoReturn:
+    """End every rank of ``comm`` with ``status``, after what this rank printed about why; its
     guard (:mod:`physicsrl.guard`) is told that the end is meant."""
     ended()
     time.sleep(0.2)  # let the launcher forward the report before Abort tears the job down
-    comm.Abort(1)
-    os._exit(1)  # MPICH's Abort can return once it has told the process manager
+    comm.Abort(status)
+    os._exit(status)  # MPICH's Abort can return once it has told the process manager
 
 
 class abort_on_error:  # noqa: N801 (used as a context manager, like contextlib helpers)
@@ -297,6 +309,7 @@ class Coordinator:
         self._sending: list[MPI.Prequest] = []
         self._receiving: MPI.Prequest | None = None
         self._trace: list[str] = []
+        self._interrupted_at: float | None = None  # a follower's Ctrl-C (serve), when
 
     # registration -------------------------------------------------------------------------
     def register(self, obj: Any, namespace: Hashable | None = None) -> Hashable:
@@ -400,7 +413,7 @@ class Coordinator:
                 self.spin_s,
                 self.max_sleep_s,
                 self._oversubscribed,
-                idle=self._report_if_unreported,
+                idle=self._idle,
             )
         self._forward()
         route, flags, n, self._sequence = _HEADER.unpack_from(self._message)
@@ -410,12 +423,49 @@ class Coordinator:
         self._channel.Bcast(rest, 0)
         return route, flags, bytes(self._view[_HEADER.size :]) + rest
 
-    def _report_if_unreported(self) -> None:
+    def _idle(self) -> None:
         if self._unreported:
             self._report()
+        self._check_interrupted()
+
+    def _check_interrupted(self) -> None:
+        """End every rank if this follower's Ctrl-C is older than :data:`LEADER_FAILED_GRACE_S`
+        and the leader has not ended the block since (it was not interrupted)."""
+        if self._interrupted_at is not None:
+            if time.monotonic() - self._interrupted_at > LEADER_FAILED_GRACE_S:
+                _interrupt(self.comm, "interrupted, and the leader was not")
 
     def serve(self) -> None:
-        """Run the leader's calls until it leaves its ``with`` block (followers only)."""
+        """Run the leader's calls until it leaves its ``with`` block (followers only).
+
+        A Ctrl-C between calls is noted, not raised: the terminal interrupts the leader too,
+        which then ends every rank with status :data:`INTERRUPTED` (``__exit__``); a follower
+        interrupted alone ends every rank after :data:`LEADER_FAILED_GRACE_S`. Inside a call it
+        raises KeyboardInterrupt, which ends every rank with that status (:func:`_fail`). A
+        SIGINT handler of the program's own is kept (``physicsrl-train``'s followers ignore it:
+        the leader checkpoints first)."""
+        self._interrupted_at = None
+        previous = None
+        main = threading.current_thread() is threading.main_thread()
+        if main and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            previous = signal.signal(signal.SIGINT, self._note_interrupt)
+        try:
+            self._serve()
+        except SystemExit as stop:
+            if stop.code == INTERRUPTED:
+                previous = signal.SIG_IGN  # a Ctrl-C still on its way would end us by SIGINT
+            raise
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
+
+    def _note_interrupt(self, signum, frame) -> None:
+        if self.depth:
+            raise KeyboardInterrupt
+        if self._interrupted_at is None:
+            self._interrupted_at = time.monotonic()
+
+    def _serve(self) -> None:
         while True:
             route, flags, payload = self._receive()
             if route == _STOP:
@@ -456,6 +506,7 @@ class Coordinator:
                 self._unreported = True
                 if time.monotonic() >= self._next_report:
                     self._report()
+            self._check_interrupted()
 
     def _lower_rank_failed(self, seconds: float) -> bool:
         """Whether a lower rank (the leader, or a follower) says, within ``seconds``, that its
@@ -582,6 +633,8 @@ class Coordinator:
         if self.rank != 0:
             return False
         interrupted = kind is not None and issubclass(kind, KeyboardInterrupt) and self.size > 1
+        if interrupted and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # the launcher may send it again
         try:
             if self.size == 1:
                 pass

@@ -1,9 +1,14 @@
 """The coordination layer: single-rank behaviour in-process, replication and faults under MPI."""
 
+import os
 import re
+import signal
+import subprocess
+import sys
 import time
 
 import pytest
+from conftest import MPIEXEC, ROOT
 
 from physicsrl.coordinated import (
     Coordinated,
@@ -156,6 +161,61 @@ def test_keyboard_interrupt_in_leader_code_ends_every_rank_with_130(mpi, guard, 
     result = mpi(ranks, *guard, script, "interrupt", timeout=30, check=False)
     assert result.returncode == 130, result.stderr
     assert result.stderr.strip() == "interrupted: every rank exits with status 130"
+
+
+def ctrl_c(ranks: int, guard: list[str], case: str, tmp_path, follower_only=False):
+    """Run ``coord_interrupt.py case`` under ``mpiexec -n ranks``; once every rank is ready,
+    send SIGINT to the launcher's process group, as a terminal's Ctrl-C does (or to the last
+    rank only); return the exit status and the output."""
+    script = ["tests/mpi_scripts/coord_interrupt.py", case]
+    output = tmp_path / "stderr"
+    with output.open("w") as stderr:
+        job = subprocess.Popen(
+            [str(MPIEXEC), "-n", str(ranks), sys.executable, *guard, *script],
+            stderr=stderr,
+            cwd=ROOT,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)},
+            start_new_session=True,
+        )
+        try:
+            deadline = time.monotonic() + 60
+            while output.read_text().count("ready") < ranks and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.2)  # the leader back in its own code, the followers idle
+            if follower_only:
+                last = re.search(rf"rank {ranks - 1} ready, pid (\d+)", output.read_text())
+                os.kill(int(last.group(1)), signal.SIGINT)
+            else:
+                os.killpg(job.pid, signal.SIGINT)
+            status = job.wait(timeout=20)
+        finally:
+            if job.poll() is None:
+                os.killpg(job.pid, signal.SIGKILL)
+    launcher = ("[mpiexec@", "Abort(130)")  # MPICH's own lines
+    said = [line for line in output.read_text().splitlines() if line and "ready" not in line]
+    return status, [line for line in said if not line.startswith(launcher)]
+
+
+@guards
+@pytest.mark.parametrize("case", ["idle", "call"])
+def test_ctrl_c_ends_every_rank_with_130_in_one_line(guard, ranks, case, tmp_path):
+    """A terminal's Ctrl-C interrupts every rank: idle followers wait for the leader's word
+    (they printed a traceback each), and inside a parallel call the leader aborts every rank
+    with status 130 (status 1 and a traceback)."""
+    status, said = ctrl_c(ranks, guard, case, tmp_path)
+    where = "interrupted" if case == "idle" else "[rank 0] interrupted in a parallel call"
+    assert (status, said) == (130, [f"{where}: every rank exits with status 130"])
+
+
+@pytest.mark.parametrize("case", ["idle", "call"])
+def test_a_follower_interrupted_alone_ends_every_rank_naming_it(case, tmp_path):
+    status, said = ctrl_c(3, [], case, tmp_path, follower_only=True)
+    where = (
+        "interrupted, and the leader was not"
+        if case == "idle"
+        else "interrupted in a parallel call"
+    )
+    assert (status, said) == (130, [f"[rank 2] {where}: every rank exits with status 130"])
 
 
 @guards
