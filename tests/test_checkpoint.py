@@ -86,33 +86,36 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
 
     mismatched = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"resume={first}"]
     result = run([*mismatched, f"hydra.run.dir={tmp_path / 'two'}"], tmp_path)
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert result.stderr.splitlines() == [
+    assert_refused(
+        result,
         "error: the checkpoint's run had 1 environment(s), this job has 2 (mpi.ranks / "
-        "mpi.ranks_per_env): resume with the same number"
-    ]
+        "mpi.ranks_per_env): resume with the same number",
+    )
     assert not (tmp_path / "two" / "resumed.txt").exists()
     # another task: refused before anything is built (it trained the other task on the run's
     # buffer and network, warning about each setting)
     other = [TRAIN, *SHORT, "env=ms", f"resume={first}", f"hydra.run.dir={tmp_path / 'other'}"]
-    result = run(other, tmp_path)
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert result.stderr.splitlines() == [
+    assert_refused(
+        run(other, tmp_path),
         "error: resume: env.name=atp where the checkpoint's run has heat: a resume goes on with "
-        "the run's task (give its +experiment or env, observation and reward)"
-    ]
+        "the run's task (give its +experiment or env, observation and reward)",
+    )
 
     for path in checkpoints.paths():
         truncate(path, 0.9)
     result = run(
         [TRAIN, *SHORT, f"hydra.run.dir={tmp_path / 'third'}", f"resume={first}"], tmp_path
     )
-    assert result.returncode == 2
-    lines = result.stderr.splitlines()
-    assert lines == [
+    assert_refused(
+        result,
         f"error: no readable checkpoint in {checkpoints.directory}: "
-        + ", ".join(checkpoint_name(i) for i in (6, 4, 2))
-    ], result.stdout + result.stderr
+        + ", ".join(checkpoint_name(i) for i in (6, 4, 2)),
+    )
+
+
+def assert_refused(result, line: str) -> None:
+    """Exit status 2 and this one line, nothing else on stderr and no traceback."""
+    assert (result.returncode, result.stderr.splitlines()) == (2, [line]), result.stdout
     assert "Traceback" not in result.stdout
 
 
@@ -124,10 +127,9 @@ def test_a_checkpoint_directory_that_cannot_be_written_is_one_line_at_the_start(
     (run_dir / "checkpoints").write_text("not a directory")
     command = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"hydra.run.dir={run_dir}"]
     result = run(command, tmp_path)
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert result.stderr.splitlines() == [
-        f"error: cannot write checkpoints to {run_dir / 'checkpoints'}: File exists"
-    ]
+    assert_refused(
+        result, f"error: cannot write checkpoints to {run_dir / 'checkpoints'}: File exists"
+    )
     assert "environment" not in (run_dir / "train.log").read_text()  # nothing was built
 
 
