@@ -164,10 +164,10 @@ def test_keyboard_interrupt_in_leader_code_ends_every_rank_with_130(mpi, guard, 
 
 
 def ctrl_c(ranks: int, guard: list[str], case: str, tmp_path, follower_only=False):
-    """Run ``coord_interrupt.py case`` under ``mpiexec -n ranks``; once every rank is ready,
+    """Run ``coord_exit.py ctrl-c-<case>`` under ``mpiexec -n ranks``; once every rank is ready,
     send SIGINT to the launcher's process group, as a terminal's Ctrl-C does (or to the last
     rank only); return the exit status and the output."""
-    script = ["tests/mpi_scripts/coord_interrupt.py", case]
+    script = ["tests/mpi_scripts/coord_exit.py", f"ctrl-c-{case}"]
     output = tmp_path / "stderr"
     with output.open("w") as stderr:
         job = subprocess.Popen(

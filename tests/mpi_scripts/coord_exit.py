@@ -4,12 +4,16 @@
 code raises KeyboardInterrupt; ``vanish-K``: the last rank calls ``os._exit(K)`` inside a
 parallel call (a follower that disappears without a word), ``vanish-SIGKILL``: it kills itself
 (as the OOM killer would); ``followers-collective``: a parallel call enters a barrier on the
-followers only (a hang that the watchdog ends); ``watched``: ordinary calls under the watchdog.
+followers only (a hang that the watchdog ends); ``watched``: ordinary calls under the watchdog;
+``ctrl-c-idle`` and ``ctrl-c-call``: wait for a Ctrl-C (the test sends SIGINT), the leader in its
+own code and the followers idle, or every rank inside a parallel call, after each rank has said
+"ready" and its pid on stderr.
 """
 
 import os
 import signal
 import sys
+import time
 
 from mpi4py import MPI
 
@@ -24,7 +28,11 @@ class Job(Coordinated):
         self.register_coordinator(coordinator)
 
     @parallel
-    def step(self, followers_only_barrier=False, vanish=None):
+    def step(self, followers_only_barrier=False, vanish=None, ready=None):
+        if ready is not None:
+            comm.Barrier()
+            print(f"rank {comm.rank} ready, pid {os.getpid()}", file=sys.stderr, flush=True)
+            time.sleep(ready)
         if vanish is not None and comm.rank == comm.size - 1:
             if vanish == "SIGKILL":
                 os.kill(os.getpid(), signal.SIGKILL)
@@ -43,6 +51,9 @@ with coordinator:
             sys.exit(int(how.removeprefix("exit-")))
         if how == "interrupt":
             raise KeyboardInterrupt
+        if how.startswith("ctrl-c-"):
+            job.step(ready=60 if how == "ctrl-c-call" else 0)
+            time.sleep(60)
         if how == "followers-collective":
             job.step(followers_only_barrier=True)
         elif how.startswith("vanish-"):
