@@ -135,11 +135,14 @@ def wait_for(
             return
 
 
-def _fail(comm: MPI.Comm, where: str | None) -> None:
+def _fail(
+    comm: MPI.Comm, where: str | None, interrupted: str = "interrupted in a parallel call"
+) -> None:
     """Print the current exception's traceback (unless ``where`` is None) and end every rank
-    of ``comm``; a KeyboardInterrupt (Ctrl-C) is one line and status :data:`INTERRUPTED`."""
+    of ``comm``; a KeyboardInterrupt (Ctrl-C) is the one line ``interrupted`` instead, and
+    status :data:`INTERRUPTED`."""
     if isinstance(sys.exc_info()[1], KeyboardInterrupt):
-        _interrupt(comm, "interrupted in a parallel call" if where else None)
+        _interrupt(comm, interrupted if where else None)
     if where is not None:
         sys.stderr.write(f"[rank {comm.rank}] {where}:\n{traceback.format_exc()}")
         sys.stderr.flush()
@@ -169,8 +172,9 @@ class abort_on_error:  # noqa: N801 (used as a context manager, like contextlib 
 
     Without it, an exception on one rank leaves the others waiting in their next collective.
     The traceback is printed once when every rank fails alike: a failing follower reports
-    only if the leader's abort has not ended it within :data:`LEADER_FAILED_GRACE_S`. On one
-    rank the exception propagates unchanged.
+    only if the leader's abort has not ended it within :data:`LEADER_FAILED_GRACE_S`. A Ctrl-C
+    (KeyboardInterrupt) is one line and status :data:`INTERRUPTED` instead. On one rank the
+    exception propagates unchanged.
     """
 
     def __init__(self, comm: MPI.Comm = MPI.COMM_WORLD):
@@ -184,7 +188,7 @@ class abort_on_error:  # noqa: N801 (used as a context manager, like contextlib 
             return False
         if self.comm.rank != 0:
             time.sleep(LEADER_FAILED_GRACE_S)
-        _fail(self.comm, "uncaught exception, aborting all ranks")
+        _fail(self.comm, "uncaught exception, aborting all ranks", "interrupted")
         return False
 
 

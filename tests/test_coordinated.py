@@ -197,13 +197,20 @@ def ctrl_c(ranks: int, guard: list[str], case: str, tmp_path, follower_only=Fals
 
 
 @guards
-@pytest.mark.parametrize("case", ["idle", "call"])
-def test_ctrl_c_ends_every_rank_with_130_in_one_line(guard, ranks, case, tmp_path):
+@pytest.mark.parametrize(
+    "case, where",
+    [
+        ("idle", "interrupted"),
+        ("call", "[rank 0] interrupted in a parallel call"),
+        ("plain", "[rank 0] interrupted"),
+    ],
+)
+def test_ctrl_c_ends_every_rank_with_130_in_one_line(guard, ranks, case, where, tmp_path):
     """A terminal's Ctrl-C interrupts every rank: idle followers wait for the leader's word
-    (they printed a traceback each), and inside a parallel call the leader aborts every rank
-    with status 130 (status 1 and a traceback)."""
+    (they printed a traceback each), inside a parallel call the leader aborts every rank with
+    status 130 (status 1 and a traceback), and so does ``abort_on_error`` (a traceback per
+    rank)."""
     status, said = ctrl_c(ranks, guard, case, tmp_path)
-    where = "interrupted" if case == "idle" else "[rank 0] interrupted in a parallel call"
     assert (status, said) == (130, [f"{where}: every rank exits with status 130"])
 
 

@@ -5,9 +5,10 @@ code raises KeyboardInterrupt; ``vanish-K``: the last rank calls ``os._exit(K)``
 parallel call (a follower that disappears without a word), ``vanish-SIGKILL``: it kills itself
 (as the OOM killer would); ``followers-collective``: a parallel call enters a barrier on the
 followers only (a hang that the watchdog ends); ``watched``: ordinary calls under the watchdog;
-``ctrl-c-idle`` and ``ctrl-c-call``: wait for a Ctrl-C (the test sends SIGINT), the leader in its
-own code and the followers idle, or every rank inside a parallel call, after each rank has said
-"ready" and its pid on stderr.
+``ctrl-c-idle``, ``ctrl-c-call`` and ``ctrl-c-plain``: wait for a Ctrl-C (the test sends SIGINT),
+the leader in its own code and the followers idle, every rank inside a parallel call, or every
+rank in its own code under ``abort_on_error``, after each rank has said "ready" and its pid on
+stderr.
 """
 
 import os
@@ -17,7 +18,7 @@ import time
 
 from mpi4py import MPI
 
-from physicsrl.coordinated import Coordinated, Coordinator, parallel
+from physicsrl.coordinated import Coordinated, Coordinator, abort_on_error, parallel
 
 how = sys.argv[1]
 comm = MPI.COMM_WORLD
@@ -28,11 +29,10 @@ class Job(Coordinated):
         self.register_coordinator(coordinator)
 
     @parallel
-    def step(self, followers_only_barrier=False, vanish=None, ready=None):
-        if ready is not None:
+    def step(self, followers_only_barrier=False, vanish=None, seconds=None):
+        if seconds is not None:
             comm.Barrier()
-            print(f"rank {comm.rank} ready, pid {os.getpid()}", file=sys.stderr, flush=True)
-            time.sleep(ready)
+            ready(seconds)
         if vanish is not None and comm.rank == comm.size - 1:
             if vanish == "SIGKILL":
                 os.kill(os.getpid(), signal.SIGKILL)
@@ -41,6 +41,15 @@ class Job(Coordinated):
             comm.Barrier()
         return comm.rank
 
+
+def ready(seconds):
+    print(f"rank {comm.rank} ready, pid {os.getpid()}", file=sys.stderr, flush=True)
+    time.sleep(seconds)
+
+
+if how == "ctrl-c-plain":
+    with abort_on_error():
+        ready(60)
 
 coordinator = Coordinator()
 job = Job(coordinator)
@@ -52,7 +61,7 @@ with coordinator:
         if how == "interrupt":
             raise KeyboardInterrupt
         if how.startswith("ctrl-c-"):
-            job.step(ready=60 if how == "ctrl-c-call" else 0)
+            job.step(seconds=60 if how == "ctrl-c-call" else 0)
             time.sleep(60)
         if how == "followers-collective":
             job.step(followers_only_barrier=True)
