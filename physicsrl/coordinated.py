@@ -499,8 +499,9 @@ class Coordinator:
                 pass  # the leader raises it too, and its caller decides
             except BaseException:
                 # The same call often fails on several ranks: the traceback is printed once, by
-                # the lowest rank that failed (each tells the ranks above it).
-                for rank in range(self.rank + 1, self.size):
+                # the lowest rank that failed (each tells the ranks above it, and the leader's
+                # watchdog, which then leaves the report to it).
+                for rank in (0, *range(self.rank + 1, self.size)):
                     self._channel.Isend(self._failed, rank, _FAILED_TAG)
                 if self._lower_rank_failed(LEADER_FAILED_GRACE_S):
                     time.sleep(LEADER_FAILED_GRACE_S)  # its abort normally ends us here
@@ -674,7 +675,9 @@ class _Watchdog:
     reports the last call it finished in a small message on ``channel``. Every ``timeout / 4``
     seconds (at most 0.25 s) the thread reads the reports and forgets the calls every rank has
     finished; if the oldest call left started more than ``timeout`` seconds ago, the ranks that
-    have not finished it end the job.
+    have not finished it end the job. A follower whose call failed says so at once and reports
+    after its grace (:data:`LEADER_FAILED_GRACE_S`): the watchdog leaves the end to it for
+    that long, so that a timeout shorter than the grace does not hide the traceback.
     """
 
     def __init__(self, channel: MPI.Comm, timeout: float):
@@ -721,6 +724,11 @@ class _Watchdog:
                 self._calls.popleft()
             if not self._calls or time.monotonic() - self._calls[0][3] < self.timeout:
                 continue
+            overdue = time.monotonic() - self._calls[0][3] - self.timeout
+            if overdue < 2 * LEADER_FAILED_GRACE_S and self.channel.Iprobe(
+                MPI.ANY_SOURCE, _FAILED_TAG
+            ):
+                continue  # a follower failed: it reports and ends the job after its grace
             sequence, obj, function, _ = self._calls[0]
             late = [rank for rank, done in enumerate(self._finished) if done < sequence]
             name = f"{type(obj).__name__}.{function.__name__}"

@@ -108,15 +108,32 @@ def test_calls_are_replayed_on_every_rank(mpi, ranks):
 @guards
 @pytest.mark.parametrize("where", ["leader", "follower", "followers", "all", "leader-code"])
 def test_a_fault_anywhere_ends_every_rank(mpi, guard, ranks, where):
+    assert_fault_ends_every_rank(mpi, guard, ranks, where)
+
+
+def assert_fault_ends_every_rank(mpi, guard, ranks, where, env=None):
+    """Within 10 s, non-zero, with the injected fault's traceback once and no other report."""
     start = time.perf_counter()
-    result = mpi(ranks, *guard, "tests/mpi_scripts/coord_fault.py", where, timeout=30, check=False)
+    result = mpi(
+        ranks, *guard, "tests/mpi_scripts/coord_fault.py", where, timeout=30, check=False, env=env
+    )
     elapsed = time.perf_counter() - start
     output = result.stdout + result.stderr
     assert result.returncode != 0, output
     assert elapsed < 10, f"took {elapsed:.1f} s to end"
     assert "unreachable" not in output
     assert len(re.findall(rf"RuntimeError: injected fault {where}", output)) == 1, output
-    assert "ended before its job did" not in output
+    assert "ended before its job did" not in output and "watchdog:" not in output, output
+
+
+@pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.parametrize("where", ["follower", "followers"])
+def test_a_follower_fault_under_a_watchdog_shorter_than_its_grace_is_its_traceback(
+    mpi, ranks, where
+):
+    """A failing follower waits 2 s for word that the leader failed too; a watchdog of 0.5 s
+    leaves the report to it (it aborted first, and its one line hid the traceback)."""
+    assert_fault_ends_every_rank(mpi, [], ranks, where, env={"PHYSICSRL_TIMEOUT": "0.5"})
 
 
 def test_coordinators_on_split_communicators_work_side_by_side(mpi):
