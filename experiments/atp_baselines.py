@@ -63,7 +63,7 @@ from physicsrl.envs.baselines import (
 from physicsrl.envs.groups import environments
 from physicsrl.envs.task import TASKS
 from physicsrl.evaluation import compare
-from physicsrl.tables import mean_metrics, read_per_policy, source_commit, write_csv
+from physicsrl.tables import mean_metrics, provenance, read_per_policy, write_csv
 from physicsrl.training import n_environments
 
 POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order
@@ -136,7 +136,7 @@ def main() -> None:
             }
         args.out.mkdir(parents=True, exist_ok=True)
         record = args.out / f"{name}.txt"
-        call = f"{shlex.join(['python', *sys.argv])}\ncommit {source_commit()}\n"
+        call = f"{shlex.join(['python', *sys.argv])}\n{provenance()}\n"
         if done:  # a resumed search: every call that computed rows stays on record
             record.write_text(record.read_text() + call)
         else:

@@ -33,7 +33,7 @@ from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule
 from physicsrl.envs.groups import GroupedEnv, environments
 from physicsrl.evaluation import run_episodes
-from physicsrl.tables import source_commit
+from physicsrl.tables import provenance
 
 EXPLICIT_ABOVE = 250
 FIELDS = ("cells", "scheme", "policy", "seed", "return", "success", "shocks", "length")
@@ -79,7 +79,7 @@ def main() -> None:
             return
         args.out.mkdir(parents=True, exist_ok=True)
         with (args.out / f"{args.experiment}_convergence.txt").open("a") as log:
-            log.write(f"{shlex.join(['python', *sys.argv])}  # commit {source_commit()}\n")
+            log.write(f"{shlex.join(['python', *sys.argv])}  # {provenance()}\n")
         done = set()
         if results.exists():
             with results.open() as file:

@@ -40,7 +40,7 @@ from physicsrl.envs.baselines import Constant, Policy, Schedule
 from physicsrl.envs.groups import environments
 from physicsrl.envs.members import spread_episodes
 from physicsrl.evaluation import MAX_STEPS, run_jobs
-from physicsrl.tables import mean_metrics, source_commit, write_csv
+from physicsrl.tables import mean_metrics, provenance, write_csv
 
 FIRST_DRAW = 2_000_000_000  # labelled draws: outside the held-out seeds and training's
 PER_CHUNK = 4
@@ -63,7 +63,7 @@ def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
     decisions = cfg.env.max_decisions
     (out / LABELS).mkdir(parents=True, exist_ok=True)
     with (out / LABELS / "labels.txt").open("a") as record:  # every call that adds chunks
-        record.write(f"{shlex.join(['python', *sys.argv])}  # commit {source_commit()}\n")
+        record.write(f"{shlex.join(['python', *sys.argv])}  # {provenance()}\n")
     with abort_on_error(), environments(factory, 1) as env:
         for chunk in range(-(-draws // PER_CHUNK)):
             path = out / LABELS / f"chunk-{chunk:03d}.pt"
@@ -205,7 +205,7 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
             print(lines[-1], flush=True)
     write_csv(out / "atp_shock_timing.csv", [{"policy": "shock once (k-NN)", **r} for r in rows])
     call = shlex.join(["python", *sys.argv])
-    text = f"{call}\ncommit {source_commit()}\n" + "\n".join(lines) + "\n"
+    text = f"{call}\n{provenance()}\n" + "\n".join(lines) + "\n"
     (out / "atp_shock_timing.txt").write_text(text)
 
 

@@ -11,6 +11,8 @@ import subprocess
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+import torch
+
 
 def format_table(rows: list[dict]) -> str:
     """``rows`` as text: a header of the columns in order of first appearance, then one line
@@ -62,9 +64,11 @@ def read_per_policy(path: str | Path) -> dict[str, list[dict]]:
     return rows
 
 
-def source_commit() -> str:
-    """The git commit of this source tree, for the record beside a results file ("unknown"
-    outside a git checkout)."""
+def provenance() -> str:
+    """``commit <hash> (CPU: <vector instructions>)`` for the record beside a results file: the
+    git commit of this source tree ("unknown" outside a git checkout), and torch's CPU
+    capability (e.g. AVX2, AVX512), since float32 results round as those instructions do."""
     git = ["git", "rev-parse", "HEAD"]
     result = subprocess.run(git, capture_output=True, text=True, cwd=Path(__file__).parent)
-    return result.stdout.strip() or "unknown"
+    commit = result.stdout.strip() or "unknown"
+    return f"commit {commit} (CPU: {torch.backends.cpu.get_cpu_capability()})"

@@ -39,7 +39,7 @@ from physicsrl.envs.members import Members
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
 from physicsrl.launch import output_dir, sweeping
-from physicsrl.tables import format_table, rounded
+from physicsrl.tables import format_table, provenance, rounded
 
 log = logging.getLogger("physicsrl.train")
 
@@ -141,12 +141,13 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     if n != groups:  # replicas: a group is a batch of them
         layout = f"{n} environments ({groups} group{plural(groups)} of {n // groups} replicas)"
     log.info(
-        "%s (%d rank%s); run directory %s; training to iteration %d",
+        "%s (%d rank%s); run directory %s; training to iteration %d; %s",
         layout,
         ranks,
         plural(ranks),
         log_dir,
         config.iterations,
+        provenance(),
     )
     if log_dir != run_dir:  # the resumed run keeps its own log; this command's says where
         handler = logging.FileHandler(log_dir / "train.log")
