@@ -46,7 +46,7 @@ from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
 from physicsrl.envs.rewards import Reward
 from physicsrl.envs.snapshots import SnapshotCache
-from physicsrl.fem.batched import BatchedMonodomain
+from physicsrl.fem.batched import BatchedMonodomain, per_replica
 from physicsrl.fem.integrals import form_rows
 from physicsrl.fem.resolution import report
 
@@ -149,7 +149,7 @@ class BatchedATPEnv(Members):
         """(replicas, K) of the replicas ``rows`` (None: all): row 0 the integral of u, then
         the observation."""
         u = self.u if rows is None else self.u[rows]
-        return (u @ self.rows.T).double().cpu().numpy()
+        return per_replica(self.rows, u).double().cpu().numpy()
 
     def _run(self, u, w, current, duration: float) -> torch.Tensor:
         return self.simulator.advance(u, w, current, self.simulator.steps(duration))
