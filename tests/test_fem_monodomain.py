@@ -210,19 +210,32 @@ def topological_charges(ms: MonodomainMitchellSchaeffer) -> np.ndarray:
 
 
 def test_reentry_forms_a_persistent_spiral(tmp_path):
-    """After the report's S1-S2 stimulus (30 time units), the excitation persists (a planar
-    wave would leave the domain and die within about 450 time units) and its phase field has
-    a singularity (net topological charge +-1), which only a rotating spiral has; checked at
-    t = 300 and t = 450 on the 60 x 60 grid."""
+    """After the report's S1-S2 stimulus (30 time units) the wave re-enters: the centre and the
+    centres of the four quadrants are each excited (u rising through 1/2, sampled every 3 time
+    units) at least twice by t = 450, where a wave that does not rotate passes each point once
+    and leaves the domain within about 450; and at t = 450 the excitation persists and its
+    phase field has singularities (nonzero winding numbers: spiral tips). The net winding
+    number at a given time is not checked: on this grid (h/width 38) tips pair and meet the
+    boundary, so it changes with the CPU's rounding (+1 at t = 450 on earlier machines, 0 on an
+    AVX-512 Xeon). The same set-up with w = 1 everywhere (no refractory side: a wave that does
+    not re-enter) excites these points at most once and dies out."""
     ms = reentry()
+    xy = ms.V.tabulate_dof_coordinates()[:, :2]
+    centres = np.array([(0, 0), (25, 25), (-25, 25), (-25, -25), (25, -25)])
+    probes = [int(np.argmin(((xy - c) ** 2).sum(axis=1))) for c in centres]
+    excited = np.zeros(len(probes), dtype=int)
     with ms.coordinator:
         ms.advance_time(30.0)
         ms.set_I_app(0.0)
-        for t in (300.0, 450.0):
-            ms.advance_time(t - ms.t)
-            charges = topological_charges(ms)
-            assert abs(charges.sum()) == 1 and np.count_nonzero(charges) >= 1, charges.sum()
-            assert (ms.u_n().x.array > 0.5).mean() > 0.1
+        before = ms.u_n().x.array[probes]
+        for _ in range(140):
+            ms.advance_time(3.0)
+            now = ms.u_n().x.array[probes]
+            excited += (before < 0.5) & (now >= 0.5)
+            before = now
+        assert excited.min() >= 2, excited
+        assert (ms.u_n().x.array > 0.5).mean() > 0.1
+        assert np.count_nonzero(topological_charges(ms)) >= 1
     plot_field(ms.u_n(), tmp_path / "u.png", "u", t=ms.t)
     assert (tmp_path / "u.png").stat().st_size > 1000
 
