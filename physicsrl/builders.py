@@ -203,17 +203,21 @@ class OneRandomAction(TensorDictModuleBase):
     Epsilon-greedy deviates at every step independently, so an episode that deviates once, at
     one chosen time, and then follows the policy is rare while epsilon is high and rarer still
     when it is low; tasks where one well-timed action decides the episode (a shock) need just
-    those episodes. Reads ``step`` (the decision index, shape (*batch, 1)) and ``action``
+    those episodes. With ``probes`` = p > 0, an episode is a probe with probability p: it
+    takes action 0 at every decision but the drawn one, whatever the policy says, so that what
+    one action at one decision leads to is seen on the task's own draws, at every decision.
+    Reads ``step`` (the decision index, shape (*batch, 1)) and ``action``
     (an index, shape (*batch,), or one-hot, (*batch, n_actions)); acts under
     ``ExplorationType.RANDOM`` (the collector's) or when none is set, as ``EGreedyModule`` does,
     with torch's global generator (checkpointed).
     """
 
-    def __init__(self, within: int, n_actions: int):
+    def __init__(self, within: int, n_actions: int, probes: float = 0.0):
         super().__init__()
         self.in_keys, self.out_keys = ["step", "action"], ["action"]
-        self.within, self.n_actions = int(within), int(n_actions)
+        self.within, self.n_actions, self.probes = int(within), int(n_actions), float(probes)
         self.chosen: torch.Tensor | None = None  # (*batch,): each episode's decision
+        self.probing: torch.Tensor | None = None  # (*batch,): whether each episode is a probe
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         if exploration_type() not in (ExplorationType.RANDOM, None):
@@ -221,11 +225,15 @@ class OneRandomAction(TensorDictModuleBase):
         step = td["step"].reshape(td.batch_size)
         if self.chosen is None or self.chosen.shape != step.shape:
             self.chosen = torch.full(step.shape, -1)
+            self.probing = torch.zeros(step.shape, dtype=torch.bool)
         starts = step == 0
         self.chosen[starts] = torch.randint(self.within, (int(starts.sum()),))
+        if self.probes:  # no draw otherwise: the random stream of runs without probes stays
+            self.probing[starts] = torch.rand(int(starts.sum())) < self.probes
         action = td["action"]
         one_hot = action.shape != step.shape
         index = action.long().argmax(-1) if one_hot else action
+        index = torch.where(self.probing, 0, index)
         other = (index + torch.randint(1, self.n_actions, index.shape)) % self.n_actions
         index = torch.where(step == self.chosen, other, index)
         chosen = torch.nn.functional.one_hot(index, self.n_actions) if one_hot else index
@@ -236,7 +244,8 @@ class OneRandomAction(TensorDictModuleBase):
 def make_exploration(q_network: TensorDictModule, env: EnvBase, exploration: Exploration):
     """``TensorDictSequential(q_network, [OneRandomAction,] EGreedyModule)``: epsilon-greedy,
     annealed linearly from ``eps_init`` to ``eps_end`` over ``annealing_frames`` (call
-    ``[-1].step(n)``), after one other action per episode if ``random_action_within`` > 0."""
+    ``[-1].step(n)``), after one other action per episode (and probe episodes) if
+    ``random_action_within`` > 0."""
     greedy = EGreedyModule(
         spec=env.action_spec_unbatched,
         eps_init=exploration.eps_init,
@@ -251,7 +260,9 @@ def make_exploration(q_network: TensorDictModule, env: EnvBase, exploration: Exp
             f"(its keys: {', '.join(map(str, env.observation_spec.keys()))})"
         )
     n_actions = env.action_spec_unbatched.space.n
-    once = OneRandomAction(exploration.random_action_within, n_actions)
+    once = OneRandomAction(
+        exploration.random_action_within, n_actions, exploration.probe_episodes
+    )
     return TensorDictSequential(q_network, once, greedy)
 
 

@@ -141,18 +141,26 @@ class Network:
 class Exploration:
     """``EGreedyModule``: epsilon annealed linearly per collected frame; with
     ``random_action_within`` = K > 0, also one other action per episode, at a decision drawn
-    from 0..K-1 (:class:`~physicsrl.builders.OneRandomAction`)."""
+    from 0..K-1, and that fraction ``probe_episodes`` of the episodes probes: action 0 at every
+    other decision (:class:`~physicsrl.builders.OneRandomAction`)."""
 
     eps_init: float = 1.0
     eps_end: float = 0.05
     annealing_frames: int = 800
     random_action_within: int = 0
+    probe_episodes: float = 0.0
 
     def __post_init__(self):
         fraction("agent.exploration.eps_init", self.eps_init)
         fraction("agent.exploration.eps_end", self.eps_end)
         integer("agent.exploration.annealing_frames", self.annealing_frames, 1)
         integer("agent.exploration.random_action_within", self.random_action_within, 0)
+        fraction("agent.exploration.probe_episodes", self.probe_episodes)
+        if self.probe_episodes and not self.random_action_within:
+            raise ValueError(
+                "agent.exploration.probe_episodes needs random_action_within > 0 (the "
+                f"decisions a probe acts at), got probe_episodes={self.probe_episodes!r}"
+            )
 
 
 @dataclass

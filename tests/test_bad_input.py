@@ -54,6 +54,8 @@ ROWS = [
     ("train", ["agent.exploration.eps_end=-0.1"], "agent.exploration.eps_end must be"),
     ("train", ["agent.exploration.annealing_frames=0"], "annealing_frames must be an integer"),
     ("train", ["agent.exploration.random_action_within=-1"], "random_action_within must be"),
+    ("train", ["agent.exploration.probe_episodes=1.5"], "probe_episodes must be"),
+    ("train", ["agent.exploration.probe_episodes=0.5"], "probe_episodes needs random_action"),
     ("train", ["agent.network.hidden=[0]"], "agent.network.hidden[0] must be an integer >= 1"),
     ("train", ["agent.network.hidden=[64,-4]"], "agent.network.hidden[1] must be an integer"),
     ("train", ["buffer.size=0"], "buffer.size must be an integer >= 1"),

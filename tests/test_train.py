@@ -294,6 +294,34 @@ def test_one_random_action_per_episode_at_a_decision_within_the_horizon(one_hot)
     assert (episodes(0, ExplorationType.DETERMINISTIC) == 0).all()
 
 
+def test_probe_episodes_take_action_0_but_at_their_one_decision():
+    """``OneRandomAction(probes=0.25)`` with the greedy action 1 throughout, 800 episodes of 6
+    decisions in 8 environments: a quarter of the episodes (1600 of 6400, to 4 standard
+    deviations) are probes, which take action 0 but at one decision below ``within`` (4),
+    where they take 1; the others take 1 but at one such decision, where they take 0."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from physicsrl.builders import OneRandomAction
+
+    torch.manual_seed(0)
+    module, actions = OneRandomAction(within=4, n_actions=2, probes=0.25), []
+    for _ in range(800):
+        for step in range(6):
+            td = TensorDict(
+                step=torch.full((8, 1), step),
+                action=torch.ones(8, dtype=torch.long),
+                batch_size=[8],
+            )
+            with set_exploration_type(ExplorationType.RANDOM):
+                actions.append(module(td)["action"])
+    actions = torch.stack(actions).reshape(800, 6, 8).transpose(1, 2).reshape(-1, 6)
+    probes = actions.sum(1) == 1
+    assert ((actions.sum(1) == 1) | (actions.sum(1) == 5)).all()
+    assert abs(int(probes.sum()) - 1600) < 4 * (6400 * 0.25 * 0.75) ** 0.5
+    assert (actions[:, 4:] == (~probes)[:, None]).all()  # the one other action is below 4
+    assert set(actions[probes].argmax(1).tolist()) == {0, 1, 2, 3}
+
+
 def test_n_step_transitions_sum_rewards_and_stop_at_episode_ends():
     """Rewards 1 per step, an episode ending at step 2, n = 3, gamma = 1/2: the known sums,
     next states and done flags; the DQN target bootstraps only where the episode goes on."""
