@@ -260,9 +260,7 @@ def make_exploration(q_network: TensorDictModule, env: EnvBase, exploration: Exp
             f"(its keys: {', '.join(map(str, env.observation_spec.keys()))})"
         )
     n_actions = env.action_spec_unbatched.space.n
-    once = OneRandomAction(
-        exploration.random_action_within, n_actions, exploration.probe_episodes
-    )
+    once = OneRandomAction(exploration.random_action_within, n_actions, exploration.probe_episodes)
     return TensorDictSequential(q_network, once, greedy)
 
 
