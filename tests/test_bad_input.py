@@ -222,6 +222,27 @@ def test_the_table_is_at_least_60_rows_over_every_command():
     assert any("-m" in overrides for _, overrides, _ in ROWS)
 
 
+@pytest.mark.parametrize(
+    "preset", sorted(path.stem for path in (ROOT / "conf" / "experiment").glob("*.yaml"))
+)
+def test_every_experiment_preset_passes_the_validation(capsys, preset):
+    """The converse of the table: each ``+experiment=`` preset composes and passes every check,
+    but a CUDA preset on a machine without CUDA, which gets the one line saying so."""
+    import torch
+
+    from physicsrl.cli.command import validate_or_exit
+
+    try:
+        validate_or_exit("train", [f"+experiment={preset}"], check_of("train"))
+    except SystemExit as exit_:
+        assert exit_.code == 2 and not torch.cuda.is_available()
+        assert capsys.readouterr().err.startswith(
+            "error: bad config: env.model.device=cuda: torch finds no CUDA device"
+        )
+    else:
+        assert capsys.readouterr().err == ""
+
+
 # Real commands: the line comes once, under 1 and 2 ranks, and every rank ends.
 PROCESSES = [
     (1, ["physicsrl-train", "agent.network.hidden=[1000000000]"], "would need about 140 GB"),
