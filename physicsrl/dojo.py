@@ -318,7 +318,7 @@ class Dojo:
             )
         losses = []
         for _ in range(self.config.optim.updates_per_batch):
-            batch = self.replay_buffer.sample()
+            batch = self.replay_buffer.sample(self.config.buffer.batch_size)
             loss = self.loss(batch)["loss"]
             self.optimizer.zero_grad()
             loss.backward()
@@ -456,7 +456,8 @@ class Dojo:
     def _apply_settings(self) -> None:
         """Give the settings that the loaded state holds this config's values (a resume with
         other settings runs with them): Adam's learning rate and weight decay, the loss's
-        discount, the exploration's epsilons (its current epsilon goes on from the state)."""
+        discount, the exploration's epsilons (its current epsilon goes on from the state); the
+        replay buffer's stored batch size is not used: :meth:`_learn` samples the config's."""
         config = self.config
         for group in self.optimizer.param_groups:
             group["lr"], group["weight_decay"] = config.learning_rate, config.optim.weight_decay

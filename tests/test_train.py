@@ -190,8 +190,11 @@ def test_a_batch_is_a_whole_number_of_steps_of_every_environment():
     assert CollectorConfig(frames_per_env=5).frames(3) == 15
 
 
-def train_toy_chain(config, iterations: int, log_dir: Path | None = None):
-    """The Dojo of ``config`` trained ``iterations`` on the toy chain of length 3 (one rank)."""
+def train_toy_chain(
+    config, iterations: int, log_dir: Path | None = None, resume: Path | None = None
+):
+    """The Dojo of ``config`` trained ``iterations`` on the toy chain of length 3 (one rank),
+    from the checkpoint ``resume`` if given."""
     sys.path.insert(0, str(TOY.parent))
     from train_toy_env import ToyChainEnv
 
@@ -203,6 +206,8 @@ def train_toy_chain(config, iterations: int, log_dir: Path | None = None):
     env = ToyChainEnv(coordinator, length=3)
     with coordinator:
         dojo = Dojo(make_q_network(env, config.agent.network), env, config, log_dir=log_dir)
+        if resume is not None:
+            dojo.load_checkpoint(resume)
         dojo.train(iterations)
     return dojo
 
@@ -241,6 +246,37 @@ def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
     assert [row["iteration"] for row in stored["history"]] == [3, 4]
     assert "evaluation" in stored["counters"]["time_s"]
     assert [r["iteration"] for r in csv.DictReader((tmp_path / "eval.csv").open())] == ["3", "4"]
+
+
+def test_a_resume_with_another_batch_size_samples_it(tmp_path, monkeypatch):
+    """The replay buffer's state holds its batch size; a resume with ``buffer.batch_size``
+    changed samples the new size, not the stored one."""
+    from torchrl.data import ReplayBuffer
+
+    from physicsrl import config as c
+    from physicsrl.checkpoint import Checkpoints
+
+    config = c.TrainConfig(
+        collector=c.CollectorConfig(frames_per_batch=8),
+        optim=c.OptimConfig(learning_starts=8, updates_per_batch=2),
+        buffer=c.BufferConfig(batch_size=6),
+        eval=c.Evaluation(every=0),
+        checkpoint=c.CheckpointConfig(every=1),
+        logger=c.LoggerConfig(progress=False, tensorboard=False),
+    )
+    train_toy_chain(config, 2, log_dir=tmp_path)
+    sizes, sample = [], ReplayBuffer.sample
+
+    def spy(buffer, *args, **kwargs):
+        batch = sample(buffer, *args, **kwargs)
+        sizes.append(len(batch))
+        return batch
+
+    monkeypatch.setattr(ReplayBuffer, "sample", spy)
+    changed = replace(config, buffer=c.BufferConfig(batch_size=5))
+    latest = Checkpoints(tmp_path / "checkpoints", keep=3).latest()
+    train_toy_chain(changed, 4, log_dir=tmp_path, resume=latest)
+    assert sizes == [5] * 4
 
 
 def test_charge_actions_subtracts_each_actions_cost_from_its_reward():
