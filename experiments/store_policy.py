@@ -28,7 +28,13 @@ def main() -> None:
         source = checkpoint_file(args.run)
     except ValueError as error:
         parser.error(str(error))
-    states = read(source, KEPT)
+    write_policy(args.out, read(source, KEPT))
+    print(f"{args.out}: the policy of {source}")
+
+
+def write_policy(out: Path, states: dict) -> None:
+    """Write the components ``KEPT`` of ``states`` (by name, as :func:`read` gives them) as the
+    policy file ``out``."""
     checkpoint = Checkpoint()
     for name, is_state in KEPT.items():
         if is_state:
@@ -36,8 +42,7 @@ def main() -> None:
             checkpoint.register(name, state, adapter=StateDictCheckpointAdapter())
         else:
             checkpoint.register(name, states[name], adapter=JSONCheckpointAdapter())
-    checkpoint.save(args.out, format="archive")
-    print(f"{args.out}: the policy of {source}")
+    checkpoint.save(out, format="archive")
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 import csv
 import json
 import os
+import re
 import runpy
 import subprocess
 import sys
@@ -68,7 +69,7 @@ def test_atp_presets_compose_with_the_report_figures():
     assert "pool: 0" in gpu  # every training episode a new draw
 
 
-def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
+def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path, capsys):
     """``mpiexec -n 2 physicsrl-train +experiment=atp`` (on a small grid): two environments,
     said in the first log line, with the preset's 8-step targets over a batch of both, and
     batches of frames_per_env transitions per environment. The resolution guard, under MPI:
@@ -96,6 +97,28 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path):
     assert stored.stat().st_size < trained.stat().st_size / 10
     weights, original = read(stored, ["q_network"]), read(trained, ["q_network"])
     torch.testing.assert_close(weights, original, rtol=0, atol=0)
+    # experiments/atp_refit.py: a new network of other widths, fitted to the run's transitions,
+    # lowers the DQN loss on them; the policy file holds it and its config
+    refit = tmp_path / "refit.torchrl"
+    capsys.readouterr()
+    run_script(
+        "atp_refit.py",
+        str(trained),
+        str(refit),
+        "--hidden",
+        "8",
+        "--updates",
+        "300",
+        "--lr",
+        "0.01",
+    )
+    said = capsys.readouterr().out
+    assert "300 updates on 12 transitions of 1 checkpoint(s)" in said, said
+    before, after = re.search(r"DQN loss on them (\S+) before, (\S+) after", said).groups()
+    assert float(after) < float(before) / 2, said
+    refitted = read(refit, ["extra", "q_network"])
+    assert refitted["extra"]["config"]["agent"]["network"]["hidden"] == [8]
+    assert refitted["q_network"]["module.0.module.1.0.weight"].shape[0] == 8
     # an existing path is refused in one line and kept (TorchRL replaced a directory, so
     # naming the run itself deleted it)
     for taken in (stored, run):
