@@ -58,6 +58,7 @@ def main() -> None:
         network["hidden"] = [int(width) for width in args.hidden.split(",")]
     cfg = run_config(states["extra"]["config"], args.overrides)
     config = typed(cfg)
+    torch.set_num_threads(config.threads)  # as training (threads=1: one core)
     torch.manual_seed(args.seed)
     coordinator = Coordinator()
     with coordinator:
