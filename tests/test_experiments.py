@@ -129,6 +129,31 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path, capsys):
         assert (sorted(taken.rglob("*")) if taken.is_dir() else taken.read_bytes()) == before
 
 
+def test_a_refit_ensemble_is_the_mean_of_its_members():
+    """``atp_refit.py --ensemble K`` writes K Q-networks as one of K x their widths: its
+    Q-values are the mean of theirs."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    sys.path.insert(0, str(ROOT / "tests" / "mpi_scripts"))
+    from atp_refit import mean_network
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl.builders import make_q_network
+    from physicsrl.config import Network
+    from physicsrl.coordinated import Coordinator
+
+    coordinator = Coordinator()
+    env = ToyChainEnv(coordinator, length=3)
+    torch.manual_seed(0)
+    members = [make_q_network(env, Network(hidden=[5, 4])) for _ in range(3)]
+    wide = make_q_network(env, Network(hidden=[15, 12]))
+    mean_network(members, wide)
+    with coordinator:
+        inputs = env.reset().expand(7).clone()
+    inputs["observation"] = torch.randn(inputs["observation"].shape)
+    values = torch.stack([member(inputs.clone())["action_value"] for member in members])
+    torch.testing.assert_close(wide(inputs.clone())["action_value"], values.mean(0))
+
+
 def test_slurm_launcher_config_composes_one_mpi_job_per_sweep_job():
     hydra = compose("+cluster=slurm", section="hydra")
     assert "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher" in hydra
