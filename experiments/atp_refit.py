@@ -102,6 +102,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of the run's config")
     args = parser.parse_intermixed_args()
+    if args.out.exists():
+        parser.error(f"{args.out} exists: name a new file")
     if args.ensemble < 1 or (args.ensemble > 1 and not args.hidden):
         parser.error(f"--ensemble {args.ensemble}: K >= 1, and K > 1 needs --hidden")
     states = read(args.checkpoint, KEPT)

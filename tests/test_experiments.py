@@ -119,6 +119,9 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path, capsys):
     refitted = read(refit, ["extra", "q_network"])
     assert refitted["extra"]["config"]["agent"]["network"]["hidden"] == [8]
     assert refitted["q_network"]["module.0.module.1.0.weight"].shape[0] == 8
+    with pytest.raises(SystemExit) as exit_:  # an existing file is refused, not replaced
+        run_script("atp_refit.py", str(trained), str(refit))
+    assert exit_.value.code == 2
     # an existing path is refused in one line and kept (TorchRL replaced a directory, so
     # naming the run itself deleted it)
     for taken in (stored, run):
