@@ -694,6 +694,13 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
             marks=pytest.mark.slow,  # the same kind of row as the run-2 agent's: make test-resolved
         ),
         pytest.param(
+            "atp_timing_r35_refit/fresh_128x2.torchrl",
+            "atp_timing_r35_refit/fresh_128x2_eval.csv",
+            2,
+            "AVX512",
+            marks=pytest.mark.slow,  # likewise
+        ),
+        pytest.param(
             "atp_timing_agent.torchrl",
             "atp_timing_agent_eval.csv",
             20,
@@ -724,8 +731,8 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     ended later, 431 against 442), so up to 3 rows may differ. The radius-35 agent's table was
     made since, on 2 ranks x 10 replicas with AVX-512: its first 2 seeds, one replica per rank,
     give its rows exactly on such a CPU (a replica does not depend on its batch), and on
-    another one row may differ (up to 3 in 20); the probe run's agent likewise. The timing
-    agent's 20 draws (~100 s), the probe agent's first 2 and the
+    another one row may differ (up to 3 in 20); the probe run's agent and a refit likewise.
+    The timing agent's 20 draws (~100 s), the probe agent's and the refit's first 2 and the
     resolved agent's first row (1000 x 1000, with its induction: ~5 min on 2 ranks) run with
     ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
