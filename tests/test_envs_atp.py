@@ -4,7 +4,6 @@ import json
 import math
 import subprocess
 import sys
-import time
 
 import dolfinx_solver  # noqa: F401 (loads MPI before dolfinx)
 import numpy as np
@@ -180,7 +179,10 @@ def test_shock_region_is_a_cell_average_of_the_disk():
     assert shock.x.array.min() >= 0 and shock.x.array.max() == pytest.approx(50)
 
 
-def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
+def test_snapshot_reset_is_identical_and_solves_no_step(tmp_path):
+    """A reset to a stored draw restores the induced state bit for bit (and the same future)
+    without a time step: the simulator's phase timings do not move (not a timed test: an
+    induction's 568 steps move them)."""
     overrides = [
         "env.mesh.cells=60",
         "env.reset.rest_time=15",
@@ -190,23 +192,22 @@ def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
     task = env.task
     draws = [(1.5, 3.0, 20.0, 15.02), (-4.0, 2.5, 12.0, 15.0)]  # 15.02: 501 steps of 0.03
     with task.coordinator:
-        start = time.perf_counter()
+        untouched = dict(task.simulator.timings)
         first = task.reset(*draws[0])
-        induce = time.perf_counter() - start
+        assert task.simulator.timings != untouched  # induced: stepped
         u, w = task.simulator.u_n().x.array.copy(), task.simulator.w_n().x.array.copy()
         t = task.simulator.t
         assert t == pytest.approx(17.04, abs=1e-9)  # 67 steps of the stimulus's 2, 501 of 15.02
         after = act(env, 0)["observation"]
         task.reset(*draws[1])
-        start = time.perf_counter()
+        stepped = dict(task.simulator.timings)
         again = task.reset(*draws[0])
-        restore = time.perf_counter() - start
+        assert task.simulator.timings == stepped  # restored: no step
         np.testing.assert_array_equal(again, first)
         np.testing.assert_array_equal(task.simulator.u_n().x.array, u)
         np.testing.assert_array_equal(task.simulator.w_n().x.array, w)
         assert task.simulator.t == t
         np.testing.assert_array_equal(act(env, 0)["observation"], after)  # same future
-        assert induce / restore >= 20, (induce, restore)
 
     fresh = atp_env(*overrides[:2], "env.snapshots.capacity=0")  # induces every time
     with fresh.task.coordinator:
@@ -217,9 +218,9 @@ def test_snapshot_reset_is_identical_and_20x_faster(tmp_path):
     assert len(loaded.task.snapshots) == 0
     with loaded.task.coordinator:
         assert all(draw in loaded.task.snapshots for draw in draws)
-        start = time.perf_counter()
+        untouched = dict(loaded.task.simulator.timings)
         np.testing.assert_array_equal(loaded.task.reset(*draws[0]), first)
-        assert induce / (time.perf_counter() - start) >= 20
+        assert loaded.task.simulator.timings == untouched
         np.testing.assert_array_equal(loaded.task.simulator.w_n().x.array, w)
 
 
