@@ -1,6 +1,8 @@
 """The timing variant's agent against the open-loop schedules on further draws, paired per draw.
 
     python experiments/atp_timing_further_draws.py
+    python experiments/atp_timing_further_draws.py --out OUT --folder FOLDER
+        --agent "NAME=CSV" ... --first-shock "NAME=POLICY" ...
 
 The table's 20 held-out draws measure a success rate to about +-11 points; this compares the
 stored run-4 policy (and run 2's) with the schedules on the draws labelled by
@@ -17,10 +19,16 @@ the policies used. It reads, under ``--out``:
 - ``atp_shock_timing_labels/``: whether a single shock at each decision ends each draw,
   and the supervised reference's leave-one-draw-out choice (``atp_shock_timing.txt``).
 
+``--folder`` and ``--agent NAME=CSV`` (repeated) name other evaluations, e.g. of another
+variant whose labels are under ``--out``. ``--first-shock NAME=POLICY`` (repeated) scores a
+stored policy's first shock from the labels alone: before its first shock a policy sees the
+never-shock episode's observations, so its greedy Q-values there give the decision of that
+shock (:func:`first_shocks`), and the labels whether that shock alone ends the draw.
+
 Prints a Markdown table, for the draws of each search and for all the labelled draws: mean
-return, success and shocks, and for each other policy the draws that only run 4 ends and those
-that only the other policy ends. The hindsight oracles pick the best row per draw after seeing
-them all (not policies): no policy in the table ends more draws. The last one adds the
+return, success and shocks, and for each other policy the draws that only the first agent ends
+and those that only the other policy ends. The hindsight oracles pick the best row per draw
+after seeing them all (not policies): no policy in the table ends more draws. The last one adds the
 two-shock schedules, tried only on the draws that nothing else ends: its success is that of
 the best choice of everything tried, its return is not printed (it would be a lower bound).
 """
@@ -32,11 +40,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from atp_baselines import hindsight  # noqa: E402
 from atp_shock_timing import choose, leave_one_draw_out, load_labels, outcomes  # noqa: E402
 
+from physicsrl import builders  # noqa: E402
+from physicsrl.checkpoint import read  # noqa: E402
+from physicsrl.config import Activation, Network  # noqa: E402
 from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
 FOLDER = "atp_timing_labelled_draws"
@@ -48,13 +60,40 @@ AGENTS = {  # stored policies' evaluations on the labelled draws; the first is p
 }
 
 
-def labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray]:
-    """(seeds, single (draws, decisions), reference (draws,)): the single-shock outcomes and
-    the success of the supervised reference (its neighbours and theta as ``fit`` chooses them
-    from all the labels) on each draw with that draw left out."""
+def labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(seeds, x, single (draws, decisions), never (draws,), reference (draws,)): the labels
+    (:func:`load_labels`) and the success of the supervised reference (its neighbours and theta
+    as ``fit`` chooses them from all the labels) on each draw with that draw left out."""
     seeds, x, single, never = load_labels(out)
     k, theta, _ = choose(x, single, never)
-    return seeds, single, outcomes(leave_one_draw_out(x, single, k), single, never, theta)
+    reference = outcomes(leave_one_draw_out(x, single, k), single, never, theta)
+    return seeds, x, single, never, reference
+
+
+def first_shocks(policy: Path, x: np.ndarray) -> np.ndarray:
+    """(draws,): the decision of the first shock of the stored greedy policy ``policy`` on each
+    labelled draw (-1: none), from the never-shock episodes' features ``x`` (draws, decisions,
+    readings + decision index; NaN where not seen), which its network must read as its inputs
+    ``[observation, step]``."""
+    states = read(policy, ["q_network", "extra"])
+    stored = states["extra"]["config"]["agent"]["network"]
+    network = Network(**{**stored, "activation": Activation(stored["activation"])})
+    if network.inputs != ["observation", "step"]:
+        raise ValueError(f"{policy}: reads {network.inputs}, not the labels' [observation, step]")
+    module = builders.q_values(x.shape[-1], 2, network)
+    prefix = "module.0.module."  # the QValueActor's module
+    module.load_state_dict({k.removeprefix(prefix): v for k, v in states["q_network"].items()})
+    with torch.no_grad():
+        q = module(torch.from_numpy(np.nan_to_num(x)).float())
+    shock = (q[..., 1] > q[..., 0]).numpy() & ~np.isnan(x[..., 0])
+    return np.array([np.flatnonzero(row)[0] if row.any() else -1 for row in shock])
+
+
+def named(pairs: list[str] | None, default: dict[str, str]) -> dict[str, str]:
+    """``["NAME=VALUE", ...]`` as a dict (None: ``default``)."""
+    if pairs is None:
+        return default
+    return dict(pair.rsplit("=", 1) for pair in pairs)
 
 
 def row(name: str, draws: str, means: dict, success=None, agent=None) -> str:
@@ -68,35 +107,39 @@ def row(name: str, draws: str, means: dict, success=None, agent=None) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
-    out = parser.parse_args().out
-    seeds, single, reference = labels(out)
+    parser.add_argument("--folder", default=FOLDER, help="the evaluations' folder under --out")
+    parser.add_argument("--agent", action="append", help="NAME=CSV in --folder (repeated)")
+    parser.add_argument("--first-shock", action="append", help="NAME=POLICY file (repeated)")
+    args = parser.parse_args()
+    out, folder, agents = args.out, args.out / args.folder, named(args.agent, AGENTS)
+    seeds, x, single, never, reference = labels(out)
     by_seed = {
-        name: {int(r["seed"]): r for r in read_per_policy(out / FOLDER / csv)["greedy DQN"]}
-        for name, csv in AGENTS.items()
+        name: {int(r["seed"]): r for r in read_per_policy(folder / csv)["greedy DQN"]}
+        for name, csv in agents.items()
     }
+    firsts = {name: first_shocks(Path(p), x) for name, p in named(args.first_shock, {}).items()}
     schedules: dict[int, dict[str, dict]] = {}  # seed -> schedule -> its row
     blocks = []  # the draws of each search, then all the labelled draws
-    for csv in sorted((out / FOLDER).glob(f"**/{SEARCH}")):
+    for csv in sorted(folder.glob(f"**/{SEARCH}")):
         rows = read_per_policy(csv)
         for policy, per_seed in rows.items():
             for r in per_seed:
                 schedules.setdefault(int(r["seed"]), {})[policy] = r
         blocks.append([int(r["seed"]) for r in next(iter(rows.values()))])
     pairs = {}  # two-shock schedule -> its rows
-    for csv in (out / FOLDER).glob(f"**/{PAIRS}"):
+    for csv in folder.glob(f"**/{PAIRS}"):
         pairs |= read_per_policy(csv)
-    print(
-        "| policy | draws | return | success | shocks | draws only run 4 ends / only this policy |"
-    )
+    first = next(iter(agents))
+    print(f"| policy | draws | return | success | shocks | draws only {first} ends / only this |")
     print("| --- | --- | --- | --- | --- | --- |")
     for draws in blocks + ([seeds] if seeds not in blocks else []):
         span = f"{draws[0] % 1000:02d}-{draws[-1] % 1000:02d}"  # the draws by their last digits
         index = [seeds.index(s) for s in draws]
-        runs = {name: [by_seed[name][s] for s in draws] for name in AGENTS}
+        runs = {name: [by_seed[name][s] for s in draws] for name in agents}
         agent = np.array([r["success"] for r in next(iter(runs.values()))], float)
         for i, (name, rows) in enumerate(runs.items()):
             won = np.array([r["success"] for r in rows], float)
-            paired = (won, agent) if i else (None, None)  # the first is run 4 itself
+            paired = (won, agent) if i else (None, None)  # the first is paired with the rest
             print(row(name, span, mean_metrics(rows), *paired))
         if all(s in schedules for s in draws):
             per_policy = {p: [schedules[s][p] for s in draws] for p in schedules[draws[0]]}
@@ -120,6 +163,10 @@ def main() -> None:
         won = reference[index]
         name = "supervised reference, leave-one-draw-out (labels)"
         print(row(name, span, {"success": won.mean()}, won, agent))
+        for name, shots in firsts.items():
+            won = np.array([single[d, k] if k >= 0 else never[d] for d, k in enumerate(shots)])
+            won = won[index]
+            print(row(f"{name}: its first shock alone (labels)", span, {"success": won.mean()}))
 
 
 if __name__ == "__main__":

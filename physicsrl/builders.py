@@ -40,6 +40,7 @@ __all__ = [
     "load_object",
     "make_env",
     "make_q_network",
+    "q_values",
     "make_exploration",
     "OneRandomAction",
     "make_loss",
@@ -172,22 +173,19 @@ def make_q_network(env: EnvBase, network: Network | None = None):
             f"agent.network.inputs {inputs}: each must be one of the env's observation keys "
             f"{sorted(env.observation_spec.keys())}"
         )
-    activation = ACTIVATIONS[network.activation.value]
     spec = env.action_spec_unbatched  # one environment's (batched envs: N of them)
-    n_actions = int(spec.space.n)
     n_obs = sum(int(env.observation_spec[key].shape[-1]) for key in inputs)
-    layers: list[nn.Module] = []
-    if network.normalize:
-        layers.append(Normalizer(n_obs))
-    layers.append(
-        MLP(
-            in_features=n_obs,
-            out_features=n_actions,
-            num_cells=list(network.hidden),
-            activation_class=activation,
-        )
-    )
-    return QValueActor(Inputs(*layers), in_keys=inputs, spec=spec)
+    return QValueActor(q_values(n_obs, int(spec.space.n), network), in_keys=inputs, spec=spec)
+
+
+def q_values(n_inputs: int, n_actions: int, network: Network) -> Inputs:
+    """The Q-network's module: ``network.inputs``' tensors (..., n_k), concatenated (n_inputs
+    numbers), -> [Normalizer] -> MLP -> Q-values (..., n_actions)."""
+    layers: list[nn.Module] = [Normalizer(n_inputs)] if network.normalize else []
+    activation = ACTIVATIONS[network.activation.value]
+    hidden = list(network.hidden)
+    layers.append(MLP(n_inputs, n_actions, num_cells=hidden, activation_class=activation))
+    return Inputs(*layers)
 
 
 def normalizer_of(q_network: nn.Module) -> Normalizer | None:

@@ -464,6 +464,30 @@ def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
     assert reference in lines
 
 
+def test_a_policys_first_shock_from_the_labels_is_that_of_its_episodes():
+    """The first shock read off a stored policy's Q-values on the labelled never-shock episodes
+    (atp_timing_further_draws.first_shocks) against the policy's own episodes on those draws:
+    run 4 never shocks on exactly the draws where it finds none, and its one-shock episodes end
+    as the labels of the decision it finds say; its first shock alone ends 31.2% of the 96."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from atp_timing_further_draws import first_shocks, labels
+
+    from physicsrl.tables import read_per_policy
+
+    results = ROOT / "experiments" / "results"
+    seeds, x, single, never, _ = labels(results)
+    shots = first_shocks(results / "atp_timing_agent.torchrl", x)
+    csv = results / "atp_timing_labelled_draws" / "atp_timing_agent_eval.csv"
+    episodes = {r["seed"]: r for r in read_per_policy(csv)["greedy DQN"]}
+    shocks = np.array([episodes[seed]["shocks"] for seed in seeds])
+    success = np.array([episodes[seed]["success"] for seed in seeds])
+    assert np.array_equal(shots < 0, shocks == 0) and (shocks == 0).sum() == 21
+    once = np.flatnonzero(shocks == 1)
+    assert len(once) == 8 and np.array_equal(single[once, shots[once]], success[once])
+    alone = np.where(shots >= 0, single[np.arange(len(shots)), shots], never)
+    assert alone.mean() == 30 / 96
+
+
 def test_two_shock_schedules_were_tried_where_nothing_else_ends_the_draw():
     """The stored two-shock search ran on exactly the 26 labelled draws that none of the 46
     schedules nor runs 2 and 4 ends, and ends 4 of them (draws 31, 47, 86 and 95), each with
