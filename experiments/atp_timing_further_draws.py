@@ -160,6 +160,14 @@ def main() -> None:
         won = single[index, best_single]
         name = f"single shock at {best_single} (labels)"
         print(row(name, span, {"success": won.mean()}, won, agent))
+        won = np.maximum(single[index].max(1), never[index])
+        print(
+            row(
+                "single shocks, the best per draw with hindsight (labels)",
+                span,
+                {"success": won.mean()},
+            )
+        )
         won = reference[index]
         name = "supervised reference, leave-one-draw-out (labels)"
         print(row(name, span, {"success": won.mean()}, won, agent))

@@ -464,6 +464,35 @@ def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
     assert reference in lines
 
 
+def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
+    """atp_timing_r35's runs on its 28 labelled draws, from the stored rows, labels and policies
+    (experiments/results/README.md): run 2 and the probe run end 82.1%, the single shock at 0
+    71.4%, the supervised reference (leave-one-draw-out) 89.3%, the best single shock per draw
+    92.9%; run 2's first shock alone would end 57.1%, the probe run's 75.0%."""
+    results = ROOT / "experiments" / "results"
+    run_2, probes = "run 2, iteration 55", "probe run, iteration 35"
+    run_script(
+        "atp_timing_further_draws.py",
+        *("--out", str(results / "atp_timing_r35_labelled_draws"), "--folder", "."),
+        *("--agent", f"{run_2}=atp_timing_r35_run2_agent_eval.csv"),
+        *("--agent", f"{probes}=atp_timing_r35_probes_agent_eval.csv"),
+        *("--first-shock", f"{run_2}={results / 'atp_timing_r35_run2_agent.torchrl'}"),
+        *("--first-shock", f"{probes}={results / 'atp_timing_r35_probes_agent.torchrl'}"),
+    )
+    lines = capsys.readouterr().out.splitlines()
+    assert f"| {run_2} | 00-27 | 362.32 | 82.1% | 2.36 |  |" in lines
+    assert f"| {probes} | 00-27 | 361.82 | 82.1% | 2.57 | 4 / 4 |" in lines
+    assert "| single shock at 0 (labels) | 00-27 |  | 71.4% |  | 4 / 1 |" in lines
+    oracle = "| single shocks, the best per draw with hindsight (labels) | 00-27 |  | 92.9% |  |  |"
+    assert oracle in lines
+    reference = (
+        "| supervised reference, leave-one-draw-out (labels) | 00-27 |  | 89.3% |  | 2 / 4 |"
+    )
+    assert reference in lines
+    assert f"| {run_2}: its first shock alone (labels) | 00-27 |  | 57.1% |  |  |" in lines
+    assert f"| {probes}: its first shock alone (labels) | 00-27 |  | 75.0% |  |  |" in lines
+
+
 def test_a_policys_first_shock_from_the_labels_is_that_of_its_episodes():
     """The first shock read off a stored policy's Q-values on the labelled never-shock episodes
     (atp_timing_further_draws.first_shocks) against the policy's own episodes on those draws:
