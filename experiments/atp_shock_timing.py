@@ -65,6 +65,8 @@ def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
     with (out / LABELS / "labels.txt").open("a") as record:  # every call that adds chunks
         record.write(f"{shlex.join(['python', *sys.argv])}  # {provenance()}\n")
     with abort_on_error(), environments(factory, 1) as env:
+        if env is None:  # another rank: its environment served the leader's episodes
+            return
         for chunk in range(-(-draws // PER_CHUNK)):
             path = out / LABELS / f"chunk-{chunk:03d}.pt"
             if path.exists():
@@ -190,6 +192,8 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
     _, factory = make_env(replicas, overrides)
     lines = []
     with abort_on_error(), environments(factory, 1) as env:
+        if env is None:  # another rank: its environment served the leader's episodes
+            return
         sizes = [n for n in (8, 16, 32, 64) if n < len(x)] + [len(x)]
         for n in sizes:  # the learning curve: the first n labelled draws
             k, theta, cv = choose(x[:n], y[:n], never[:n])
