@@ -48,7 +48,8 @@ from atp_shock_timing import choose, leave_one_draw_out, load_labels, outcomes  
 
 from physicsrl import builders  # noqa: E402
 from physicsrl.checkpoint import read  # noqa: E402
-from physicsrl.config import Activation, Network  # noqa: E402
+from physicsrl.cli.eval import run_config  # noqa: E402
+from physicsrl.config import typed  # noqa: E402
 from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
 FOLDER = "atp_timing_labelled_draws"
@@ -76,8 +77,7 @@ def first_shocks(policy: Path, x: np.ndarray) -> np.ndarray:
     readings + decision index; NaN where not seen), which its network must read as its inputs
     ``[observation, step]``."""
     states = read(policy, ["q_network", "extra"])
-    stored = states["extra"]["config"]["agent"]["network"]
-    network = Network(**{**stored, "activation": Activation(stored["activation"])})
+    network = typed(run_config(states["extra"]["config"], [])).agent.network
     if network.inputs != ["observation", "step"]:
         raise ValueError(f"{policy}: reads {network.inputs}, not the labels' [observation, step]")
     module = builders.q_values(x.shape[-1], 2, network)
