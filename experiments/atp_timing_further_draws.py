@@ -11,10 +11,10 @@ the policies used. It reads, under ``--out``:
 
 - ``atp_timing_labelled_draws/atp_timing_agent_eval.csv`` (and ``..._run2_...``): the
   policies on those draws (``physicsrl-eval``, the commands in ``atp_timing_agent.txt`` there);
-- ``atp_timing_open_loop_per_seed.csv`` in ``atp_timing_labelled_draws/`` and its folders:
+- ``<experiment>_open_loop_per_seed.csv`` in ``atp_timing_labelled_draws/`` and its folders:
   every open-loop schedule on the draws of each search (``atp_baselines.py --open-loop
   --first-seed 2000000000``, and ``2000000048`` in ``draws_48_95/``);
-- ``atp_timing_two_shocks_per_seed.csv`` there or below: schedules of two shocks on the draws
+- ``<experiment>_two_shocks_per_seed.csv`` there or below: schedules of two shocks on the draws
   that none of the above ends (``atp_baselines.py --open-loop --two-shocks 1,2,3``);
 - ``atp_shock_timing_labels/``: whether a single shock at each decision ends each draw,
   and the supervised reference's leave-one-draw-out choice (``atp_shock_timing.txt``).
@@ -53,8 +53,8 @@ from physicsrl.config import typed  # noqa: E402
 from physicsrl.tables import mean_metrics, read_per_policy  # noqa: E402
 
 FOLDER = "atp_timing_labelled_draws"
-SEARCH = "atp_timing_open_loop_per_seed.csv"  # each search of the schedules, in FOLDER or below
-PAIRS = "atp_timing_two_shocks_per_seed.csv"  # two-shock schedules, in FOLDER or below
+SEARCH = "*_open_loop_per_seed.csv"  # each search of the schedules, in FOLDER or below
+PAIRS = "*_two_shocks_per_seed.csv"  # two-shock schedules, in FOLDER or below
 AGENTS = {  # stored policies' evaluations on the labelled draws; the first is paired with all
     "run 4, iteration 100": "atp_timing_agent_eval.csv",
     "run 2, iteration 90": "atp_timing_run2_agent_eval.csv",
@@ -87,6 +87,20 @@ def first_shocks(policy: Path, x: np.ndarray) -> np.ndarray:
         q = module(torch.from_numpy(np.nan_to_num(x)).float())
     shock = (q[..., 1] > q[..., 0]).numpy() & ~np.isnan(x[..., 0])
     return np.array([np.flatnonzero(row)[0] if row.any() else -1 for row in shock])
+
+
+def agreement(schedules: dict[int, dict[str, dict]], seeds: list[int], single: np.ndarray):
+    """(agreeing, compared): the (draw, decision) pairs where a search's "single shock at k"
+    and the label say the same of the shock's success, of those both cover: two implementations
+    of the same episodes."""
+    agreeing = compared = 0
+    for d, seed in enumerate(seeds):
+        for k in range(single.shape[1]):
+            searched = schedules.get(seed, {}).get(f"single shock at {k}")
+            if searched is not None:
+                compared += 1
+                agreeing += float(searched["success"]) == single[d, k]
+    return agreeing, compared
 
 
 def named(pairs: list[str] | None, default: dict[str, str]) -> dict[str, str]:
@@ -175,6 +189,10 @@ def main() -> None:
             won = np.array([single[d, k] if k >= 0 else never[d] for d, k in enumerate(shots)])
             won = won[index]
             print(row(f"{name}: its first shock alone (labels)", span, {"success": won.mean()}))
+    agreeing, compared = agreement(schedules, seeds, single)
+    if compared:
+        agree = f"agree on {agreeing} of {compared} draws x decisions"
+        print(f"\nthe labels and the searches' single shocks {agree}")
 
 
 if __name__ == "__main__":

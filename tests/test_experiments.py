@@ -442,7 +442,9 @@ def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
     against the best schedule's 35.4%, which ends no draw the agent fails and 17 fewer; on
     draws 48-95, searched after, 54.2% against 33.3% (11 / 1); on all 96, 62.5% against 31.2%
     (32 / 2), and none of the table's policies, chosen per draw with hindsight, ends more than
-    72.9% of them; adding 66 two-shock schedules, 77.1%."""
+    72.9% of them; adding 66 two-shock schedules, 77.1%. The labels and the searches, the same
+    episodes computed apart (other runs, batches and perhaps CPUs), give the same single-shock
+    outcome on 2,272 of the 2,304 draws x decisions; the other 32 differ both ways (18, 14)."""
     run_script("atp_timing_further_draws.py", "--out", str(ROOT / "experiments" / "results"))
     lines = capsys.readouterr().out.splitlines()
     assert "| run 4, iteration 100 | 00-47 | 303.62 | 70.8% | 2.35 |  |" in lines
@@ -462,13 +464,17 @@ def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
         "| supervised reference, leave-one-draw-out (labels) | 00-95 |  | 50.0% |  | 15 / 3 |"
     )
     assert reference in lines
+    agree = "the labels and the searches' single shocks agree on 2272 of 2304 draws x decisions"
+    assert agree in lines
 
 
 def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
     """atp_timing_r35's runs on its 48 labelled draws, from the stored rows, labels and policies
-    (experiments/results/README.md): run 2 ends 75.0%, the probe run 66.7%, the single shock at
-    0 58.3%, the supervised reference (leave-one-draw-out) 81.2%, the best single shock per draw
-    91.7%; run 2's first shock alone would end 47.9%, the probe run's 68.8%."""
+    (experiments/results/README.md): run 2 ends 75.0%, the probe run 66.7%, the best of the 46
+    open-loop schedules (single shock at 0) 58.3%, the supervised reference (leave-one-draw-out)
+    81.2%, the best single shock per draw 91.7%; run 2's first shock alone would end 47.9%, the
+    probe run's 68.8%. The search's single shocks are the labels' episodes, outcome for
+    outcome."""
     results = ROOT / "experiments" / "results"
     run_2, probes = "run 2, iteration 55", "probe run, iteration 35"
     run_script(
@@ -482,6 +488,10 @@ def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
     lines = capsys.readouterr().out.splitlines()
     assert f"| {run_2} | 00-47 | 325.62 | 75.0% | 2.60 |  |" in lines
     assert f"| {probes} | 00-47 | 283.83 | 66.7% | 2.92 | 9 / 5 |" in lines
+    best = "| best open-loop schedule: single shock at 0 | 00-47 | 266.19 | 58.3% | 1.00 | 10 / 2 |"
+    assert best in lines
+    oracle = "| hindsight oracle of the schedules | 00-47 | 435.56 | 93.8% |  |  |"
+    assert oracle in lines
     assert "| single shock at 0 (labels) | 00-47 |  | 58.3% |  | 10 / 2 |" in lines
     oracle = "| single shocks, the best per draw with hindsight (labels) | 00-47 |  | 91.7% |  |  |"
     assert oracle in lines
@@ -491,6 +501,8 @@ def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
     assert reference in lines
     assert f"| {run_2}: its first shock alone (labels) | 00-47 |  | 47.9% |  |  |" in lines
     assert f"| {probes}: its first shock alone (labels) | 00-47 |  | 68.8% |  |  |" in lines
+    agree = "the labels and the searches' single shocks agree on 1152 of 1152 draws x decisions"
+    assert agree in lines
 
 
 def test_a_policys_first_shock_from_the_labels_is_that_of_its_episodes():
