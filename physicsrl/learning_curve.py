@@ -90,7 +90,11 @@ def plot(
     if not rows or "wall_s" not in rows[0]:
         return None
     ranks = ranks or job_ranks(run_dir)
-    title = f"{Path(run_dir).name}: {ranks} ranks" if ranks else f"{Path(run_dir).name}: 1 rank?"
+    title = (
+        f"{Path(run_dir).name}: {ranks} rank{'s' * (ranks != 1)}"
+        if ranks
+        else f"{Path(run_dir).name}: 1 rank?"
+    )
     x = curves(rows, ranks or 1)
     metrics = {m: label for m, label in METRICS.items() if m in rows[0]}
     bars = [b for b in bars if b["policy"] != "greedy DQN"]

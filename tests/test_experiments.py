@@ -580,6 +580,37 @@ def test_resolved_timing_bar_is_the_results_tables():
     assert oracle["return"] == 477.3 and oracle["success"] == 1.0
 
 
+def test_resolved_timing_gpu_runs_are_the_results_tables():
+    """Runs G1 (H100) and G2 (H200) of the GPU preset, from their stored files: the same
+    evaluations at iterations 2 and 4, parting at 6; G2's kept policy is its iteration 7, whose
+    20 draws give 346.20, 75%, 1.90 shocks and end 09 and 10 where the bar (every 5th decision
+    from 4) fails, and fail 05, 14, 17 and 19 where it succeeds (experiments/results/README.md)."""
+    from physicsrl.checkpoint import read
+    from physicsrl.tables import mean_metrics, read_per_policy
+
+    results = ROOT / "experiments" / "results"
+    g1, g2 = (
+        {row["iteration"]: row for row in csv.DictReader((results / run / "eval.csv").open())}
+        for run in ("atp_resolved_timing_gpu", "atp_resolved_timing_gpu_g2")
+    )
+    metrics = ("frames", "return", "success", "shocks")
+    assert [[g1[i][k] for k in metrics] for i in "24"] == [
+        [g2[i][k] for k in metrics] for i in "24"
+    ]
+    assert (g1["6"]["return"], g2["6"]["return"]) == ("373.85", "349.1")
+    counters = read(results / "atp_resolved_timing_gpu_agent.torchrl", {"counters": True})
+    assert counters["counters"]["iteration"] == 7 and counters["counters"]["episodes"] == 448
+    kept = read_per_policy(results / "atp_resolved_timing_gpu_agent_eval.csv")["greedy DQN"]
+    means = mean_metrics(kept)
+    assert (round(means["return"], 2), means["success"], means["shocks"]) == (346.2, 0.75, 1.9)
+    bar = read_per_policy(results / "atp_resolved_timing_open_loop_cuda_per_seed.csv")
+    ended = [
+        {row["seed"] % 1000 for row in rows if row["success"]}
+        for rows in (kept, bar["every 5 from 4"])
+    ]
+    assert sorted(ended[0] - ended[1]) == [9, 10] and sorted(ended[1] - ended[0]) == [5, 14, 17, 19]
+
+
 def shock_timing():
     return runpy.run_path(str(ROOT / "experiments" / "atp_shock_timing.py"))
 
