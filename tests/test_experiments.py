@@ -583,7 +583,8 @@ def test_resolved_timing_bar_is_the_results_tables():
 def test_resolved_timing_gpu_runs_are_the_results_tables():
     """Runs G1 (H100) and G2 (H200) of the GPU preset, from their stored files: the same
     evaluations at iterations 2 and 4, parting at 6; G2's kept policy is its iteration 7, whose
-    20 draws give 346.20, 75%, 1.90 shocks and end 09 and 10 where the bar (every 5th decision
+    20 draws give 346.20, 75%, 1.90 shocks, the same episodes on the GPU (torch, float32) and on
+    the CPU (DOLFINx/PETSc, float64), and end 09 and 10 where the bar (every 5th decision
     from 4) fails, and fail 05, 14, 17 and 19 where it succeeds (experiments/results/README.md)."""
     from physicsrl.checkpoint import read
     from physicsrl.tables import mean_metrics, read_per_policy
@@ -601,6 +602,8 @@ def test_resolved_timing_gpu_runs_are_the_results_tables():
     counters = read(results / "atp_resolved_timing_gpu_agent.torchrl", {"counters": True})
     assert counters["counters"]["iteration"] == 7 and counters["counters"]["episodes"] == 448
     kept = read_per_policy(results / "atp_resolved_timing_gpu_agent_eval.csv")["greedy DQN"]
+    cpu = read_per_policy(results / "atp_resolved_timing_gpu_agent_cpu_eval.csv")["greedy DQN"]
+    assert cpu == kept  # DOLFINx/PETSc in float64 on 2 CPU ranks: the GPU's float32 episodes
     means = mean_metrics(kept)
     assert (round(means["return"], 2), means["success"], means["shocks"]) == (346.2, 0.75, 1.9)
     bar = read_per_policy(results / "atp_resolved_timing_open_loop_cuda_per_seed.csv")
@@ -817,6 +820,13 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
             "any CPU",
             marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
         ),
+        pytest.param(
+            "atp_resolved_timing_gpu_agent.torchrl",  # trained on a GPU, its rows from there
+            "atp_resolved_timing_gpu_agent_eval.csv",
+            1,
+            "any CPU",
+            marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
+        ),
     ],
 )
 def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
@@ -836,7 +846,8 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     give its rows exactly on such a CPU (a replica does not depend on its batch), and on
     another one row may differ (up to 3 in 20); the probe run's agent and a refit likewise.
     The timing agent's 20 draws (~100 s), the probe agent's and the refit's first 2 and the
-    resolved agent's first row (1000 x 1000, with its induction: ~5 min on 2 ranks) run with
+    resolved agents' first rows (1000 x 1000, with its induction: ~5 min on 2 ranks; the GPU-trained
+    one's on DOLFINx in float64, where its table came from the GPU in float32) run with
     ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
 
@@ -845,6 +856,8 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
     command += [f"run={results / policy}", f"seeds={seeds}", "baselines=false", "gif=false"]
     command += ["curve=false", f"hydra.run.dir={out}"]
+    if "gpu" in policy:
+        command += [f"overrides={ON_THE_CPU}"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     rows = list(csv.DictReader((out / "eval.csv").open()))
@@ -860,6 +873,8 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     assert len({seed for seed, *_ in differ}) <= (0 if exact else max(1, 3 * seeds // 20)), differ
 
 
+ON_THE_CPU = '["env.model.backend=petsc","env.model.device=cpu","env.model.dtype=auto",'
+ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's run, on DOLFINx
 TORCH_FLOAT32 = ["env.model.backend=torch", "env.replicas=1", "env.model.compile=true"]
 TORCH_FLOAT32 += ["env.model.dtype=float32"]
 
