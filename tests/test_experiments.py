@@ -469,12 +469,12 @@ def test_timing_agent_on_further_draws_is_the_results_tables(capsys):
 
 
 def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
-    """atp_timing_r35's runs on its 48 labelled draws, from the stored rows, labels and policies
-    (experiments/results/README.md): run 2 ends 75.0%, the probe run 66.7%, the best of the 46
-    open-loop schedules (single shock at 0) 58.3%, the supervised reference (leave-one-draw-out)
-    81.2%, the best single shock per draw 91.7%; run 2's first shock alone would end 47.9%, the
-    probe run's 68.8%. The search's single shocks are the labels' episodes, outcome for
-    outcome."""
+    """atp_timing_r35's runs on its 96 labelled draws, from the stored rows, labels and policies
+    (experiments/results/README.md): on draws 00-47 run 2 ends 75.0%, the probe run 66.7%, the
+    best of the 46 open-loop schedules (single shock at 0) 58.3%; on 00-95 run 2 ends 69.8%
+    against 54.2% for that schedule (19 / 4 draws), the supervised reference (leave-one-draw-out)
+    75.0%, the best single shock per draw 91.7%; run 2's first shock alone would end 45.8%. The
+    searches' single shocks are the labels' episodes, outcome for outcome."""
     results = ROOT / "experiments" / "results"
     run_2, probes = "run 2, iteration 55", "probe run, iteration 35"
     run_script(
@@ -490,18 +490,21 @@ def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
     assert f"| {probes} | 00-47 | 283.83 | 66.7% | 2.92 | 9 / 5 |" in lines
     best = "| best open-loop schedule: single shock at 0 | 00-47 | 266.19 | 58.3% | 1.00 | 10 / 2 |"
     assert best in lines
-    oracle = "| hindsight oracle of the schedules | 00-47 | 435.56 | 93.8% |  |  |"
+    assert f"| {run_2} | 00-95 | 299.07 | 69.8% | 2.77 |  |" in lines
+    best = "| best open-loop schedule: single shock at 0 | 00-95 | 246.19 | 54.2% | 1.00 | 19 / 4 |"
+    assert best in lines
+    oracle = "| hindsight oracle of the schedules | 00-95 | 429.52 | 92.7% |  |  |"
     assert oracle in lines
-    assert "| single shock at 0 (labels) | 00-47 |  | 58.3% |  | 10 / 2 |" in lines
-    oracle = "| single shocks, the best per draw with hindsight (labels) | 00-47 |  | 91.7% |  |  |"
+    assert "| single shock at 0 (labels) | 00-95 |  | 54.2% |  | 19 / 4 |" in lines
+    oracle = "| single shocks, the best per draw with hindsight (labels) | 00-95 |  | 91.7% |  |  |"
     assert oracle in lines
     reference = (
-        "| supervised reference, leave-one-draw-out (labels) | 00-47 |  | 81.2% |  | 2 / 5 |"
+        "| supervised reference, leave-one-draw-out (labels) | 00-95 |  | 75.0% |  | 7 / 12 |"
     )
     assert reference in lines
-    assert f"| {run_2}: its first shock alone (labels) | 00-47 |  | 47.9% |  |  |" in lines
-    assert f"| {probes}: its first shock alone (labels) | 00-47 |  | 68.8% |  |  |" in lines
-    agree = "the labels and the searches' single shocks agree on 1152 of 1152 draws x decisions"
+    assert f"| {run_2}: its first shock alone (labels) | 00-95 |  | 45.8% |  |  |" in lines
+    assert f"| {probes}: its first shock alone (labels) | 00-95 |  | 62.5% |  |  |" in lines
+    agree = "the labels and the searches' single shocks agree on 2304 of 2304 draws x decisions"
     assert agree in lines
 
 
