@@ -789,17 +789,28 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
         curve.best_rows([table], seeds={1000000001, 1000000002})
 
 
+ON_THE_CPU = '["env.model.backend=petsc","env.model.device=cpu","env.model.dtype=auto",'
+ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's run, on DOLFINx
+
+
 @pytest.mark.parametrize(
-    "policy, table, seeds, exact_on",
+    "policy, table, seeds, exact_on, overrides",
     [
-        ("atp_agent.torchrl", "atp_agent_eval.csv", 1, "any CPU"),
-        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", 1, "any CPU"),
-        ("atp_timing_r35_run2_agent.torchrl", "atp_timing_r35_run2_agent_eval.csv", 2, "AVX512"),
+        ("atp_agent.torchrl", "atp_agent_eval.csv", 1, "any CPU", []),
+        ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", 1, "any CPU", []),
+        (
+            "atp_timing_r35_run2_agent.torchrl",
+            "atp_timing_r35_run2_agent_eval.csv",
+            2,
+            "AVX512",
+            [],
+        ),
         pytest.param(
             "atp_timing_r35_probes_agent.torchrl",
             "atp_timing_r35_probes_agent_eval.csv",
             2,
             "AVX512",
+            [],
             marks=pytest.mark.slow,  # the same kind of row as the run-2 agent's: make test-resolved
         ),
         pytest.param(
@@ -807,6 +818,7 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
             "atp_timing_r35_refit/fresh_128x2_eval.csv",
             2,
             "AVX512",
+            [],
             marks=pytest.mark.slow,  # likewise
         ),
         pytest.param(
@@ -814,6 +826,7 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
             "atp_timing_agent_eval.csv",
             20,
             None,
+            [],
             marks=pytest.mark.slow,  # ~100 s: make test-resolved
         ),
         pytest.param(
@@ -821,6 +834,7 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
             "atp_resolved_timing_agent_eval.csv",
             1,
             "any CPU",
+            [],
             marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
         ),
         pytest.param(
@@ -828,12 +842,13 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
             "atp_resolved_timing_gpu_agent_eval.csv",
             1,
             "any CPU",
+            [f"overrides={ON_THE_CPU}"],
             marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
         ),
     ],
 )
 def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
-    tmp_path, policy, table, seeds, exact_on
+    tmp_path, policy, table, seeds, exact_on, overrides
 ):
     """A stored ATP policy (experiments/results/) on its first held-out seeds, on 2 MPI ranks:
     the return, success and shocks of those seeds' rows in its table. The report task's first
@@ -858,9 +873,7 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     out = tmp_path / "eval"
     command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
     command += [f"run={results / policy}", f"seeds={seeds}", "baselines=false", "gif=false"]
-    command += ["curve=false", f"hydra.run.dir={out}"]
-    if "gpu" in policy:
-        command += [f"overrides={ON_THE_CPU}"]
+    command += ["curve=false", f"hydra.run.dir={out}", *overrides]
     result = subprocess.run(command, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     rows = list(csv.DictReader((out / "eval.csv").open()))
@@ -876,8 +889,6 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     assert len({seed for seed, *_ in differ}) <= (0 if exact else max(1, 3 * seeds // 20)), differ
 
 
-ON_THE_CPU = '["env.model.backend=petsc","env.model.device=cpu","env.model.dtype=auto",'
-ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's run, on DOLFINx
 TORCH_FLOAT32 = ["env.model.backend=torch", "env.replicas=1", "env.model.compile=true"]
 TORCH_FLOAT32 += ["env.model.dtype=float32"]
 
