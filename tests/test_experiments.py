@@ -617,8 +617,103 @@ def test_resolved_timing_gpu_runs_are_the_results_tables():
     assert sorted(ended[0] - ended[1]) == [9, 10] and sorted(ended[1] - ended[0]) == [5, 14, 17, 19]
 
 
+def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
+    """Every episode of the resolved timing task rerun at 2000 x 2000
+    (experiments/results/atp_resolved_timing_2000/) against its row at 1000 x 1000: R1 and the
+    single shock at 4 on draw 09, the bar (every 5th decision from 4) on draw 11 and, with
+    G2's kept policy, on the six draws where those two differ at 1000 x 1000. 12 of the 15
+    episodes end as at 1000 x 1000, with the same return; draw 10's two outcomes swap (at
+    2000 x 2000 the bar ends it and G2 fails it), and G2 ends draw 14 with 2 shocks where it
+    failed with 4 (experiments/results/README.md)."""
+    from physicsrl.tables import read_per_policy
+
+    results = ROOT / "experiments" / "results"
+    fine = results / "atp_resolved_timing_2000"
+    coarse = read_per_policy(results / "atp_resolved_timing_open_loop_cuda_per_seed.csv")
+    names = {"single4": "single shock at 4", "every5from4": "every 5 from 4"}
+    pairs = {}  # (policy, draw) -> (return at 1000, return at 2000)
+    for row in csv.DictReader((fine / "atp_resolved_timing_convergence.csv").open()):
+        seed, name = int(row["seed"]), names[row["policy"]]
+        (before,) = [r["return"] for r in coarse[name] if r["seed"] == seed]
+        pairs[name, seed % 1000] = (before, float(row["return"]))
+    for agent, table in [
+        ("R1", "atp_resolved_timing_agent"),
+        ("G2", "atp_resolved_timing_gpu_agent"),
+    ]:
+        before = {
+            r["seed"]: r["return"]
+            for r in read_per_policy(results / f"{table}_eval.csv")["greedy DQN"]
+        }
+        for path in fine.glob(f"{table}_eval_2000*.csv"):
+            for row in read_per_policy(path)["greedy DQN"]:
+                pairs[agent, row["seed"] % 1000] = (before[row["seed"]], row["return"])
+    draws = lambda policy: sorted(d for p, d in pairs if p == policy)  # noqa: E731
+    assert draws("every 5 from 4") == [5, 9, 10, 11, 14, 17, 19]
+    assert draws("G2") == [5, 9, 10, 14, 17, 19]
+    assert draws("R1") == draws("single shock at 4") == [9]
+    differ = {key: value for key, value in pairs.items() if value[0] != value[1]}
+    assert differ == {
+        ("every 5 from 4", 10): (-30.0, 447.0),
+        ("G2", 10): (466.0, -20.0),
+        ("G2", 14): (-40.0, 468.0),
+    }
+
+
 def shock_timing():
     return runpy.run_path(str(ROOT / "experiments" / "atp_shock_timing.py"))
+
+
+def test_phase_drift_finds_the_shift_of_a_late_rotation():
+    """``atp_phase_drift.shifts`` on readings of a rotation of period 250 that runs late on the
+    coarse grid by 3 + 0.02 t time units (a 2% slower rotation): each window's shift is that
+    delay at the window's middle, to the search's step; the same readings give 0. The stored
+    readings of held-out draw 10 give the shifts of the results README."""
+    module = runpy.run_path(str(ROOT / "experiments" / "atp_phase_drift.py"))
+    times = 5.0 * np.arange(151)
+    phases = np.linspace(0, 2 * np.pi, 20, endpoint=False)
+    reading = lambda t: np.sin(2 * np.pi * t[:, None] / 250 + phases) ** 2  # noqa: E731
+    fine = reading(times)
+    coarse = reading(times - (3 + 0.02 * times))
+    rows = module["shifts"](times, coarse, fine, 150.0)
+    assert [start for start, *_ in rows] == [0, 150, 300, 450, 600]
+    for start, end, s in rows:
+        assert abs(s - (3 + 0.02 * (start + end) / 2)) <= 0.5, (start, s)
+    assert {s for *_, s in module["shifts"](times, fine, fine, 150.0)} == {0.0}
+
+    stored = ROOT / "experiments" / "results" / "atp_phase_drift"
+    runs = {cells: np.load(stored / f"readings_{cells}.npz") for cells in (400, 1000, 2000)}
+    late = {
+        (coarse, fine): [
+            s
+            for *_, s in module["shifts"](
+                runs[coarse]["times"], runs[coarse]["readings"], runs[fine]["readings"], 150.0
+            )
+        ]
+        for coarse, fine in [(400, 1000), (1000, 2000)]
+    }
+    assert late == {
+        (400, 1000): [27.25, 28.25, 32.25, 33.0, 36.75],
+        (1000, 2000): [4.25, 4.5, 5.5, 5.0, 5.5],
+    }
+
+
+def test_phase_drift_script_records_a_grid_and_compares_grids(tmp_path):
+    """``record`` stores a never-shock episode's readings every 5 time units over the task's
+    750 (151 readings of the catheter's 20 electrodes), the same on 2 ranks sharing the mesh as
+    on one; ``compare`` finds no shift between a grid's readings and themselves, in each of
+    the 5 windows."""
+    arguments = ["--cells", "70", "--draw", "1", "env.snapshots.directory=null"]
+    run_script("atp_phase_drift.py", "record", *arguments, "--out", str(tmp_path))
+    one = np.load(tmp_path / "readings_70.npz")
+    assert one["readings"].shape == (151, 20) and one["times"][-1] == 750.0
+    script = str(ROOT / "experiments" / "atp_phase_drift.py")
+    run_mpi(2, script, "record", *arguments, "--out", str(tmp_path / "two"), timeout=300)
+    two = np.load(tmp_path / "two" / "readings_70.npz")
+    assert np.allclose(two["readings"], one["readings"], rtol=1e-9, atol=1e-15)
+    (tmp_path / "two" / "readings_70.npz").rename(tmp_path / "readings_71.npz")
+    run_script("atp_phase_drift.py", "compare", "--out", str(tmp_path))
+    text = (tmp_path / "atp_phase_drift.txt").read_text()
+    assert "70 against 71 cells" in text and text.count("s = +0.00") == 5
 
 
 def test_shock_timing_choice_finds_a_rule_the_readings_show():
