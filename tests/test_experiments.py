@@ -621,10 +621,10 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     """Every episode of the resolved timing task rerun at 2000 x 2000
     (experiments/results/atp_resolved_timing_2000/) against its row at 1000 x 1000: R1 and the
     single shock at 4 on draw 09, the bar (every 5th decision from 4) on draw 11 and, with
-    G2's kept policy, on the six draws where those two differ at 1000 x 1000. 12 of the 15
-    episodes end as at 1000 x 1000, with the same return; draw 10's two outcomes swap (at
-    2000 x 2000 the bar ends it and G2 fails it), and G2 ends draw 14 with 2 shocks where it
-    failed with 4 (experiments/results/README.md)."""
+    G2's kept policy, on the six draws where those two differ at 1000 x 1000 and on draws
+    00-03. 20 of the 23 episodes end as at 1000 x 1000 (17 with the same return); draw 10's
+    two outcomes swap (at 2000 x 2000 the bar ends it and G2 fails it), and G2 ends draw 14
+    with 2 shocks where it failed with 4 (experiments/results/README.md)."""
     from physicsrl.tables import read_per_policy
 
     results = ROOT / "experiments" / "results"
@@ -648,14 +648,17 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
             for row in read_per_policy(path)["greedy DQN"]:
                 pairs[agent, row["seed"] % 1000] = (before[row["seed"]], row["return"])
     draws = lambda policy: sorted(d for p, d in pairs if p == policy)  # noqa: E731
-    assert draws("every 5 from 4") == [5, 9, 10, 11, 14, 17, 19]
-    assert draws("G2") == [5, 9, 10, 14, 17, 19]
+    assert draws("every 5 from 4") == [0, 1, 2, 3, 5, 9, 10, 11, 14, 17, 19]
+    assert draws("G2") == [0, 1, 2, 3, 5, 9, 10, 14, 17, 19]
     assert draws("R1") == draws("single shock at 4") == [9]
     differ = {key: value for key, value in pairs.items() if value[0] != value[1]}
     assert differ == {
-        ("every 5 from 4", 10): (-30.0, 447.0),
-        ("G2", 10): (466.0, -20.0),
-        ("G2", 14): (-40.0, 468.0),
+        ("every 5 from 4", 10): (-30.0, 447.0),  # failed, then ended
+        ("G2", 10): (466.0, -20.0),  # ended, then failed
+        ("G2", 14): (-40.0, 468.0),  # failed, then ended
+        ("G2", 0): (467.0, 468.0),  # ended, one decision earlier
+        ("G2", 1): (-20.0, -30.0),  # failed, with one more shock
+        ("G2", 3): (467.0, 468.0),  # ended, one decision earlier
     }
 
 
