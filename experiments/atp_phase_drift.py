@@ -7,9 +7,10 @@ never-shock episode of the resolved timing task at each grid, and the time shift
     mpiexec -n 2 python experiments/atp_phase_drift.py record ...   # one episode on 2 ranks
 
 ``record``: ``+experiment=atp_resolved_timing`` on held-out draw ``--draw`` (seed 1000000000 +
-draw), never shocking, read every ``--every`` time units (``env.decision_interval``) over the
-episode's span (its 15 decisions of 50, no extra waits): ``<out>/readings_<cells>.npz`` with
-the times since the takeover (T,) and the readings (T, electrodes).
+draw), never shocking, read every ``--every`` time units (``env.decision_interval``, rounded to
+whole steps of dt) over the episode's span (its 15 decisions of 50, no extra waits):
+``<out>/readings_<cells>.npz`` with the times since the takeover (T,) and the readings
+(T, electrodes).
 
 ``compare``: for each grid against the next finer one, in windows of ``--window`` time units,
 the shift s that minimises the mean squared difference between the coarse readings at t and
@@ -63,9 +64,10 @@ def record(cells: int, draw: int, every: float, out: Path, overrides: list[str])
         rollout = episode(env, Constant(0), held_out_seeds(draw + 1)[draw])
         readings = torch.cat([rollout["observation"], rollout["next", "observation"][-1:]])
         out.mkdir(parents=True, exist_ok=True)
+        interval = round(every / cfg.env.model.dt) * cfg.env.model.dt  # whole steps of dt
         np.savez(
             out / f"readings_{cells}.npz",
-            times=every * np.arange(len(readings)),
+            times=interval * np.arange(len(readings)),
             readings=readings.double().numpy(),
             command=shlex.join(["python", *sys.argv]) + f"  # {provenance()}",
         )

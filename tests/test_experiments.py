@@ -701,14 +701,14 @@ def test_phase_drift_finds_the_shift_of_a_late_rotation():
 
 
 def test_phase_drift_script_records_a_grid_and_compares_grids(tmp_path):
-    """``record`` stores a never-shock episode's readings every 5 time units over the task's
-    750 (151 readings of the catheter's 20 electrodes), the same on 2 ranks sharing the mesh as
-    on one; ``compare`` finds no shift between a grid's readings and themselves, in each of
-    the 5 windows."""
+    """``record`` stores a never-shock episode's readings every 5 time units (167 steps of dt)
+    over the task's 750 (151 readings of the catheter's 20 electrodes), the same on 2 ranks
+    sharing the mesh as on one; ``compare`` finds no shift between a grid's readings and
+    themselves, in each of the 5 windows."""
     arguments = ["--cells", "70", "--draw", "1", "env.snapshots.directory=null"]
     run_script("atp_phase_drift.py", "record", *arguments, "--out", str(tmp_path))
     one = np.load(tmp_path / "readings_70.npz")
-    assert one["readings"].shape == (151, 20) and one["times"][-1] == 750.0
+    assert one["readings"].shape == (151, 20) and np.isclose(one["times"][-1], 150 * 167 * 0.03)
     script = str(ROOT / "experiments" / "atp_phase_drift.py")
     run_mpi(2, script, "record", *arguments, "--out", str(tmp_path / "two"), timeout=300)
     two = np.load(tmp_path / "two" / "readings_70.npz")
