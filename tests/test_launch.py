@@ -320,10 +320,11 @@ def test_a_guarded_rank_that_vanishes_is_named_and_fails_the_job(mpi, ranks, sta
     Rarely (about 1 run in 1,000 here, twice in CI runs) MPICH's launcher leaves the other ranks
     waiting after the vanished rank's guard has exited non-zero: its proxy idles in ``poll``
     with that process reaped (not diagnosed further; the session notes of 2026-11-27 hold a
-    process dump). The test then runs the job once more: a second hang fails it."""
+    process dump). The test then runs the job once more, after 10 s (a job takes ~1.5 s): a
+    second hang fails it."""
     guarded = ["-m", "physicsrl.guard", "tests/mpi_scripts/coord_exit.py", f"vanish-{status}"]
     try:
-        result = mpi(ranks, *guarded, timeout=30, check=False)
+        result = mpi(ranks, *guarded, timeout=10, check=False)
     except subprocess.TimeoutExpired:
         result = mpi(ranks, *guarded, timeout=30, check=False)
     assert result.returncode != 0, result.stderr
