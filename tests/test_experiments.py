@@ -667,7 +667,7 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     metrics = ("return", "success", "shocks")
     bar = [{k: float(r[k]) for k in metrics} for r in rows if r["policy"] == "every5from4"]
     g2 = read_per_policy(fine / "atp_resolved_timing_gpu_agent_eval_2000.csv")["greedy DQN"]
-    means = [mean_metrics(rows) for rows in (bar, g2)]
+    means = [mean_metrics(per_seed) for per_seed in (bar, g2)]
     assert [(round(m["return"], 2), m["success"], m["shocks"]) for m in means] == [
         (374.7, 0.85, 3.0),
         (347.5, 0.75, 1.8),
