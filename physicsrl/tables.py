@@ -11,8 +11,6 @@ import subprocess
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-import torch
-
 
 def format_table(rows: list[dict]) -> str:
     """``rows`` as text: a header of the columns in order of first appearance, then one line
@@ -68,6 +66,8 @@ def provenance() -> str:
     """``commit <hash> (CPU: <vector instructions>)`` for the record beside a results file: the
     git commit of this source tree ("unknown" outside a git checkout), and torch's CPU
     capability (e.g. AVX2, AVX512), since float32 results round as those instructions do."""
+    import torch  # here, not above: a command line's bad input is refused before torch loads
+
     git = ["git", "rev-parse", "HEAD"]
     result = subprocess.run(git, capture_output=True, text=True, cwd=Path(__file__).parent)
     commit = result.stdout.strip() or "unknown"

@@ -280,6 +280,29 @@ def test_real_commands_print_one_line_once_and_every_rank_ends(tmp_path, checkpo
         assert not list(cwd.iterdir())  # no run directory
 
 
+@pytest.mark.parametrize(
+    "command, arguments",
+    [
+        ("train", ["iterations=-1"]),
+        ("eval", ["run=nosuch"]),
+        ("bench", ["ping", "calls=-5"]),
+    ],
+)
+def test_a_bad_command_line_is_refused_before_torch_loads(tmp_path, command, arguments):
+    """The refusal costs the command line's parsing, not torch's ~2 s import (the bench's took
+    it: its tables' module imported torch for the CPU's name in a results file)."""
+    script = (
+        f"import sys; sys.argv = {['physicsrl-' + command, *arguments]!r}\n"
+        f"from physicsrl.cli.{command} import main\n"
+        "try:\n    main()\nfinally:\n    print(sorted({'torch', 'dolfinx'} & set(sys.modules)))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path
+    )
+    assert (result.returncode, result.stdout) == (2, "[]\n"), result.stderr
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+
+
 def test_a_sweep_is_validated_with_its_config_s_params_and_globs(tmp_path, capsys):
     """``hydra.sweeper.params`` set by an experiment's YAML join the command line's sweep in
     the checks (its bad job ran after the good one); ``glob(...)`` of a group expands (it was

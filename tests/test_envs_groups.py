@@ -72,16 +72,16 @@ def test_layout_errors(per_env, world, text):
     [
         (2, 1, "remote", None),
         (2, 1, "learner", None),
-        (2, 1, "exit", 3),
         (4, 2, "remote", None),
         (4, 2, "exit", 3),
     ],
 )
 def test_faults_end_every_group(ranks, per_env, mode, status):
     """An exception in a remote group's simulator or on the learner ends every rank non-zero
-    with the traceback printed once; a clean sys.exit(3) on the learner exits 3, silently.
-    Groups of 2 ranks: a fault inside the remote group, and a clean exit through both groups
-    (the learner's fault ends the same ranks as its clean exit does)."""
+    with the traceback printed once; a clean sys.exit(3) on the learner exits 3 on every rank,
+    silently. Groups of 2 ranks: a fault inside the remote group, and the clean exit, through
+    both groups (each group's leader and its follower; the learner's fault ends the same ranks
+    as its clean exit does)."""
     result = run_mpi(
         ranks, "tests/mpi_scripts/envs_groups_fault.py", mode, str(per_env), timeout=60, check=False
     )
