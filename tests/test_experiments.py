@@ -619,11 +619,12 @@ def test_resolved_timing_gpu_runs_are_the_results_tables():
 
 def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     """Every episode of the resolved timing task rerun at 2000 x 2000
-    (experiments/results/atp_resolved_timing_2000/) against its row at 1000 x 1000: R1 and the
-    single shock at 4 on draw 09, and the bar (every 5th decision from 4) and G2's kept policy
-    on all 20 held-out draws. Their means barely move (the bar 374.70, 85%; G2 347.50, 75%,
-    1.80 shocks), but 4 of the 40 episodes change outcome: the bar's on draws 06 and 10 and
-    G2's on 10 and 14 (experiments/results/README.md)."""
+    (experiments/results/atp_resolved_timing_2000/) against its row at 1000 x 1000: R1 on draw
+    09, and the bar (every 5th decision from 4), the runner-up schedule (a single shock at 4)
+    and G2's kept policy on all 20 held-out draws. Their means barely move (the bar 374.70,
+    85%; the single shock 330.05, 70%; G2 347.50, 75%, 1.80 shocks), but 4 of the 60 episodes
+    change outcome: the bar's on draws 06 and 10 and G2's on 10 and 14
+    (experiments/results/README.md)."""
     from physicsrl.tables import mean_metrics, read_per_policy
 
     results = ROOT / "experiments" / "results"
@@ -648,13 +649,15 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
             for row in read_per_policy(path)["greedy DQN"]:
                 pairs[agent, row["seed"] % 1000] = (before[row["seed"]], row["return"])
     draws = lambda policy: sorted(d for p, d in pairs if p == policy)  # noqa: E731
-    assert draws("every 5 from 4") == draws("G2") == list(range(20))
-    assert draws("R1") == draws("single shock at 4") == [9]
+    assert draws("every 5 from 4") == draws("single shock at 4") == draws("G2") == list(range(20))
+    assert draws("R1") == [9]
     differ = {key: value for key, value in pairs.items() if value[0] != value[1]}
     assert differ == {
         ("every 5 from 4", 6): (446.0, -30.0),  # ended, then failed
         ("every 5 from 4", 10): (-30.0, 447.0),  # failed, then ended
         ("every 5 from 4", 18): (436.0, 447.0),  # ended, with another return
+        ("single shock at 4", 5): (476.0, 477.0),  # ended, one decision earlier
+        ("single shock at 4", 6): (478.0, 459.0),  # ended, three decisions later
         ("G2", 10): (466.0, -20.0),  # ended, then failed
         ("G2", 14): (-40.0, 468.0),  # failed, then ended
         ("G2", 0): (467.0, 468.0),  # ended, one decision earlier
@@ -665,11 +668,15 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
         ("G2", 12): (458.0, 468.0),  # ended, with one shock fewer
     }
     metrics = ("return", "success", "shocks")
-    bar = [{k: float(r[k]) for k in metrics} for r in rows if r["policy"] == "every5from4"]
+    schedules = [
+        [{k: float(r[k]) for k in metrics} for r in rows if r["policy"] == name]
+        for name in ("every5from4", "single4")
+    ]
     g2 = read_per_policy(fine / "atp_resolved_timing_gpu_agent_eval_2000.csv")["greedy DQN"]
-    means = [mean_metrics(per_seed) for per_seed in (bar, g2)]
+    means = [mean_metrics(per_seed) for per_seed in (*schedules, g2)]
     assert [(round(m["return"], 2), m["success"], m["shocks"]) for m in means] == [
         (374.7, 0.85, 3.0),
+        (330.05, 0.7, 1.0),
         (347.5, 0.75, 1.8),
     ]
 
