@@ -906,6 +906,11 @@ def test_a_bar_from_a_per_seed_table_is_on_the_curve_s_seeds(tmp_path):
         curve.best_rows([table], seeds={1000000001, 1000000002})
 
 
+def draw_seeds(draws: list[int]) -> list[str]:
+    """The seeds of these held-out draws (by index: 0 is 1000000000), as a table's CSV has them."""
+    return [str(held_out_seeds(20)[draw]) for draw in draws]
+
+
 ON_THE_CPU = '["env.model.backend=petsc","env.model.device=cpu","env.model.dtype=auto",'
 ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's run, on DOLFINx
 
@@ -989,7 +994,7 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     results = ROOT / "experiments" / "results"
     out = tmp_path / "eval"
     command = [str(MPIEXEC), "-n", "2", str(Path(sys.executable).with_name("physicsrl-eval"))]
-    seeds = [str(held_out_seeds(20)[draw]) for draw in draws]
+    seeds = draw_seeds(draws)
     command += [f"run={results / policy}", f"seeds=[{','.join(seeds)}]", "baselines=false"]
     command += ["gif=false", "curve=false", f"hydra.run.dir={out}", *overrides]
     result = subprocess.run(command, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
@@ -1054,7 +1059,7 @@ def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
     results = ROOT / "experiments" / "results"
     command = [str(MPIEXEC), "-n", "2", sys.executable]
     command += [str(ROOT / "experiments" / "atp_baselines.py"), "--experiment", experiment]
-    seeds = [str(held_out_seeds(20)[draw]) for draw in draws]
+    seeds = draw_seeds(draws)
     command += ["--open-loop", "--seed-list", ",".join(seeds), "--out", str(tmp_path)]
     command += ["--schedules", schedule, *overrides]
     result = subprocess.run(command, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
