@@ -12,6 +12,11 @@ width = sqrt(D tau_in). Writes the library's table ``physicsrl/fem/cv_error.csv`
 ``benchmarks/results/ms_cv.txt`` (command, table). Serial, about a minute.
 
     python benchmarks/ms_cv.py
+    python benchmarks/ms_cv.py --at 2000:0.03 4000:0.015   # seconds
+
+``--at CELLS:DT``: instead, the explicit scheme's error on quadrilaterals at those grids of
+[-50, 50]^2 (h = 100 / CELLS) and time steps, the table left as it is (it holds dt = 0.03 only;
+the scheme's error is about first order in dt), into ``benchmarks/results/ms_cv_at.txt``.
 """
 
 from __future__ import annotations
@@ -46,9 +51,43 @@ def speed(h: float, dt: float, scheme: str, cell_type="quadrilateral", along="ed
     )
 
 
+def grid_step(text: str) -> tuple[int, float]:
+    """``"CELLS:DT"`` -> (cells per side, dt), both > 0."""
+    cells, _, dt = text.partition(":")
+    try:
+        pair = int(cells), float(dt)
+    except ValueError:
+        pair = (0, 0.0)
+    if pair[0] < 1 or not pair[1] > 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected CELLS:DT, e.g. 2000:0.03")
+    return pair
+
+
+def errors_at(grids: list[tuple[int, float]], reference: float) -> list[tuple[float, float]]:
+    """(h / width, explicit CV error) at each (cells per side of [-50, 50]^2, dt)."""
+    width = math.sqrt(D * TAU_IN)
+    return [
+        (math.sqrt(2) * 100 / cells / width, speed(100 / cells, dt, "explicit") / reference - 1)
+        for cells, dt in grids
+    ]
+
+
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # --help; no options
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--at", nargs="+", type=grid_step, metavar="CELLS:DT")
+    at = parser.parse_args().at
     reference = speed(0.01, 0.002, "implicit")
+    if at:
+        lines = [
+            f"command: python {' '.join(sys.argv)}",
+            "| cells per side of [-50, 50]^2 | diameter / width | dt | explicit CV error |",
+            "| --- | --- | --- | --- |",
+        ]
+        for (cells, dt), (ratio, error) in zip(at, errors_at(at, reference), strict=True):
+            lines.append(f"| {cells} | {ratio:.3g} | {dt:g} | {error:+.2%} |")
+        (Path(__file__).parent / "results" / "ms_cv_at.txt").write_text("\n".join(lines) + "\n")
+        print("\n".join(lines))
+        return
     check = speed(0.01, 0.002, "explicit")
     width = math.sqrt(D * TAU_IN)
     rows = {}  # (cell type, scheme) -> [(h, ratio, error, direction)]

@@ -7,6 +7,7 @@ import physicsrl.fem  # noqa: F401  (first: loads the MPI library that dolfinx l
 # isort: split
 
 import math
+import runpy
 import warnings
 
 import dolfinx.mesh
@@ -19,6 +20,7 @@ from physicsrl.coordinated import Coordinator
 from physicsrl.envs import load_config, make_env
 from physicsrl.fem import resolution as guard
 from physicsrl.fem.resolution import ResolutionWarning, cv_table
+from tests.conftest import ROOT
 
 
 @pytest.mark.parametrize("scheme", ["implicit", "explicit"])
@@ -109,3 +111,16 @@ def test_a_front_speed_with_a_step_longer_than_its_sampling_interval_ends():
     dt = 1.5 it returns (it used to advance by 0 forever); the front, stepped that coarsely,
     dies."""
     assert guard.planar_front_speed(0.25, 1.5, length=4.0, T=20.0) == 0.0
+
+
+def test_the_error_at_a_grid_and_step_is_the_tables_at_its_step_and_smaller_at_half():
+    """``benchmarks/ms_cv.py --at``: at 2000 cells per side and dt = 0.03 the explicit scheme's
+    CV error is the table's row (h / width 1.13, written by the full benchmark); at 4000 cells
+    and dt = 0.015 it is smaller in magnitude (the table holds dt = 0.03 only)."""
+    module = runpy.run_path(str(ROOT / "benchmarks" / "ms_cv.py"))
+    reference = module["speed"](0.01, 0.002, "implicit")
+    (ratio, error), (_, finer) = module["errors_at"]([(2000, 0.03), (4000, 0.015)], reference)
+    ratios, errors = cv_table("explicit")
+    (row,) = np.nonzero(np.isclose(ratios, ratio, rtol=1e-4))[0]
+    assert error == pytest.approx(errors[row], abs=1e-5)
+    assert errors[row] < finer < 0
