@@ -3,8 +3,9 @@ never-shock episode of the resolved timing task at each grid, and the time shift
 
     python experiments/atp_phase_drift.py record --cells 1000 --draw 10 --out <dir>   # minutes
     python experiments/atp_phase_drift.py record --cells 2000 --draw 10 --out <dir>   # ~15 min
+    mpiexec -n 2 python experiments/atp_phase_drift.py record --cells 4000 --draw 10 --every 5.01 \\
+        --out <dir> env.model.dt=0.015   # ~1 h on 2 ranks sharing the mesh, ~11 GB
     python experiments/atp_phase_drift.py compare --out <dir>
-    mpiexec -n 2 python experiments/atp_phase_drift.py record ...   # one episode on 2 ranks
 
 ``record``: ``+experiment=atp_resolved_timing`` on held-out draw ``--draw`` (seed 1000000000 +
 draw), never shocking, read every ``--every`` time units (``env.decision_interval``, rounded to
@@ -12,7 +13,8 @@ whole steps of dt) over the episode's span (its 15 decisions of 50, no extra wai
 ``<out>/readings_<cells>.npz`` with the times since the takeover (T,) and the readings
 (T, electrodes).
 
-``compare``: for each grid against the next finer one, in windows of ``--window`` time units,
+``compare`` (the grids' readings at the same times: 5.01 is 167 steps of dt = 0.03 and 334 of
+0.015): for each grid against the next finer one, in windows of ``--window`` time units,
 the shift s that minimises the mean squared difference between the coarse readings at t and
 the fine ones at t - s (linear interpolation; each electrode scaled by its fine readings'
 deviation): s > 0 means the coarse grid's reentry runs late. A slower front (the coarse grid's

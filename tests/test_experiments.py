@@ -689,7 +689,7 @@ def test_phase_drift_finds_the_shift_of_a_late_rotation():
     """``atp_phase_drift.shifts`` on readings of a rotation of period 250 that runs late on the
     coarse grid by 3 + 0.02 t time units (a 2% slower rotation): each window's shift is that
     delay at the window's middle, to the search's step; the same readings give 0. The stored
-    readings of held-out draw 10 give the shifts of the results README."""
+    readings of held-out draw 10 (400 to 4000 cells) give the shifts of the results README."""
     module = runpy.run_path(str(ROOT / "experiments" / "atp_phase_drift.py"))
     times = 5.0 * np.arange(151)
     phases = np.linspace(0, 2 * np.pi, 20, endpoint=False)
@@ -703,7 +703,7 @@ def test_phase_drift_finds_the_shift_of_a_late_rotation():
     assert {s for *_, s in module["shifts"](times, fine, fine, 150.0)} == {0.0}
 
     stored = ROOT / "experiments" / "results" / "atp_phase_drift"
-    runs = {cells: np.load(stored / f"readings_{cells}.npz") for cells in (400, 1000, 2000)}
+    runs = {cells: np.load(stored / f"readings_{cells}.npz") for cells in (400, 1000, 2000, 4000)}
     late = {
         (coarse, fine): [
             s
@@ -711,11 +711,12 @@ def test_phase_drift_finds_the_shift_of_a_late_rotation():
                 runs[coarse]["times"], runs[coarse]["readings"], runs[fine]["readings"], 150.0
             )
         ]
-        for coarse, fine in [(400, 1000), (1000, 2000)]
+        for coarse, fine in [(400, 1000), (1000, 2000), (2000, 4000)]
     }
     assert late == {
         (400, 1000): [27.25, 28.25, 32.25, 33.0, 36.75],
         (1000, 2000): [4.25, 4.5, 5.5, 5.0, 5.5],
+        (2000, 4000): [3.0, 2.5, 2.75, 3.0, 3.0],  # 4000 cells at dt = 0.015
     }
 
 
