@@ -150,6 +150,19 @@ def test_expected_cv_error_is_the_simulated_one(converged_cv, scheme, h):
         assert triangles[1] > 2.4 * triangles[0] > 0.1
 
 
+@pytest.mark.parametrize("scheme", ["explicit", "implicit"])
+def test_expected_cv_error_between_the_tables_steps_is_the_simulated_one(converged_cv, scheme):
+    """At dt = 0.01, between the table's steps 0.0075 and 0.015, and h = 0.075, between two of
+    its rows, the CV error the resolution report states (interpolated in both) is the one a
+    planar front shows, within 0.2 points; the error the table holds for dt = 0.03 is not (the
+    step's share of the error is larger than that)."""
+    h, dt = 0.075, 0.01
+    ratio = h * np.sqrt(2) / np.sqrt(D * TAU_IN)
+    error = front_speed(h, dt, tau_close=TAU_CLOSE, scheme=scheme) / converged_cv - 1
+    assert error == pytest.approx(expected_cv_error(scheme, ratio, dt=dt), abs=2e-3)
+    assert abs(error - expected_cv_error(scheme, ratio, dt=DT)) > 2e-3
+
+
 @pytest.mark.parametrize("cell_type", ["quadrilateral", "triangle"])
 def test_a_task_checks_the_explicit_limit_on_a_small_copy_of_its_mesh(cell_type):
     """The stability limit a task's config checks before any mesh is built (on 4 x 4 cells of

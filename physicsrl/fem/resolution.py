@@ -5,14 +5,16 @@ The excitation front of the monodomain model is about :math:`\sqrt{D \tau_\mathr
 conduction velocity (CV) a scheme computes depends on h against that width;
 ``benchmarks/ms_cv.py`` measures its relative error against the converged CV for both schemes
 and both cell types, each in the worse of the directions it measures (:func:`front_strip`:
-along the cells' edges and, on triangles, along their hypotenuses), at
-dt = :data:`TABLE_DT`, and writes the table :data:`TABLE` (``cv_error.csv`` beside this module,
-the one place the numbers live). :func:`resolution` interpolates it, linearly in
-:math:`\log(h / \text{width})`; :func:`report` prints it and warns when the error is above
+along the cells' edges and, on triangles, along their hypotenuses), at each time step of
+:data:`TABLE_DTS`, and writes the table :data:`TABLE` (``cv_error.csv`` beside this module, the
+one place the numbers live). :func:`resolution` interpolates it, linearly in
+:math:`\log(h / \text{width})` and then linearly in dt (both schemes' errors are about first
+order in dt); a step shorter than the table's shortest reads that step's rows (the error is
+then theirs or smaller). :func:`report` prints it and warns when the error is above
 :data:`MAX_CV_ERROR`, or when the table does not cover the mesh and step: h / width beyond its
 coarsest row (the error is then that row's or worse), a cell type it has no rows for, or a
-longer dt (its time-step error adds to the table's). The heat equation's counterpart is
-:class:`physicsrl.fem.heat.HeatResolution`; :func:`report` prints either.
+step longer than its longest (its time-step error adds to the table's). The heat equation's
+counterpart is :class:`physicsrl.fem.heat.HeatResolution`; :func:`report` prints either.
 """
 
 from __future__ import annotations
@@ -32,12 +34,12 @@ from mpi4py import MPI
 MAX_CV_ERROR = 0.05
 """Expected relative planar CV error above which :func:`report` warns."""
 
-TABLE_DT = 0.03
-"""The time step of :data:`TABLE`'s measurements (the tasks' dt)."""
+TABLE_DTS = (0.0075, 0.015, 0.03)
+"""The time steps of :data:`TABLE`'s measurements, ascending (the longest: the tasks' dt)."""
 
 TABLE = Path(__file__).with_name("cv_error.csv")
-"""Columns ``scheme``, ``cell_type``, ``h_over_width``, ``cv_error`` (relative, signed: -1 when
-no wave propagates), written by ``benchmarks/ms_cv.py``."""
+"""Columns ``scheme``, ``cell_type``, ``dt``, ``h_over_width``, ``cv_error`` (relative, signed:
+-1 when no wave propagates), written by ``benchmarks/ms_cv.py``."""
 
 
 @dataclass(frozen=True)
@@ -104,14 +106,18 @@ class Resolution:
 
 
 @functools.cache  # read once per process: every simulator's construction asks
-def cv_table(scheme: str, cell_type: str = "quadrilateral") -> tuple[np.ndarray, np.ndarray]:
-    """(h / width ascending, CV error) of ``scheme`` on ``cell_type`` from :data:`TABLE` (empty
-    arrays for a cell type it has no rows for; read-only)."""
+def cv_table(
+    scheme: str, cell_type: str = "quadrilateral", dt: float = TABLE_DTS[-1]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(h / width ascending, CV error) of ``scheme`` on ``cell_type`` at the time step ``dt``
+    (one of :data:`TABLE_DTS`) from :data:`TABLE` (empty arrays for a cell type it has no rows
+    for; read-only)."""
     with TABLE.open() as table:
         rows = [
             row
             for row in csv.DictReader(table)
             if (row["scheme"], row["cell_type"]) == (scheme, cell_type)
+            and math.isclose(float(row["dt"]), dt)
         ]
     rows.sort(key=lambda row: float(row["h_over_width"]))
     ratios = np.array([float(row["h_over_width"]) for row in rows])
@@ -120,11 +126,18 @@ def cv_table(scheme: str, cell_type: str = "quadrilateral") -> tuple[np.ndarray,
     return ratios, errors
 
 
-def expected_cv_error(scheme: str, ratio: float, cell_type: str = "quadrilateral") -> float:
-    """The table's CV error of ``scheme`` on ``cell_type`` at h / width = ``ratio``
-    (interpolated)."""
-    ratios, errors = cv_table(scheme, cell_type)
-    return float(np.interp(math.log(ratio), np.log(ratios), errors))
+def expected_cv_error(
+    scheme: str, ratio: float, cell_type: str = "quadrilateral", dt: float = TABLE_DTS[-1]
+) -> float:
+    """The table's CV error of ``scheme`` on ``cell_type`` at h / width = ``ratio`` and the
+    time step ``dt`` (interpolated in both, clamped to the table's rows)."""
+    steps, at_each_step = [], []
+    for step in TABLE_DTS:
+        ratios, errors = cv_table(scheme, cell_type, step)
+        if len(ratios):
+            steps.append(step)
+            at_each_step.append(np.interp(math.log(ratio), np.log(ratios), errors))
+    return float(np.interp(dt, steps, at_each_step))
 
 
 def largest_cell_diameter(domain) -> float:
@@ -152,9 +165,9 @@ def resolution(domain, D: float, tau_in: float, scheme: str, dt: float) -> Resol
     uncovered = [f"h/width above its coarsest {ratios[-1]:.3g}"] if beyond else []
     if rows != cell_type:
         uncovered.append(f"{cell_type} cells, it has quadrilaterals and triangles")
-    if dt > TABLE_DT * (1 + 1e-9):
-        uncovered.append(f"dt = {dt:g}, it has {TABLE_DT:g}")
-    error = expected_cv_error(scheme, h / width, rows)
+    if dt > TABLE_DTS[-1] * (1 + 1e-9):
+        uncovered.append(f"dt = {dt:g}, its longest is {TABLE_DTS[-1]:g}")
+    error = expected_cv_error(scheme, h / width, rows, dt)
     return Resolution(scheme, cell_type, cells, h, dt, width, error, tuple(uncovered), beyond)
 
 
