@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -44,6 +46,15 @@ def run_mpi(ranks: int, *args: str, timeout: float = 120, env: dict | None = Non
             f"{' '.join(command)} exited {result.returncode}\n{result.stdout}\n{result.stderr}"
         )
     return result
+
+
+def together(*calls: Callable):
+    """The results of ``calls`` (each starts a command and waits for it), made at the same
+    time: independent commands share the machine's cores instead of waiting for each other
+    (each spends seconds importing torch on one core). The first exception is raised."""
+    with ThreadPoolExecutor(len(calls)) as pool:
+        futures = [pool.submit(call) for call in calls]
+        return [future.result() for future in futures]
 
 
 @pytest.fixture

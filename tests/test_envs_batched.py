@@ -12,6 +12,7 @@ import json
 import re
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,7 @@ from physicsrl.envs.batched import BatchedATPEnv
 from physicsrl.envs.gym import GymnasiumVectorView
 from physicsrl.envs.members import member_seed
 from physicsrl.evaluation import compare, run_episode
-from tests.conftest import MPIEXEC
+from tests.conftest import MPIEXEC, together
 
 # A small, short ATP task: 16 x 16 cells, induction 9 time units, decisions of 3.
 SMALL = (
@@ -353,7 +354,8 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
     2 replicas on each of 2 ranks (2 groups x 2 = the same 4 environments): the same
     in-training evaluations (their seeds spread over the 4 environments). ``physicsrl-eval`` of
     the 1-rank run gives the same rows for the agent and the baselines on the torch backend and
-    on the PETSc path (the run's config overridden back to it)."""
+    on the PETSc path (the run's config overridden back to it). The two runs, then the two
+    evaluations, run at the same time."""
     # success when the integral of u drops below 230: after 2 waits on some draws (196 against
     # 251 and 278 on the first three held-out draws), later or never on the others
     task = ["env=ms", *SMALL, "env.success_threshold=230.0", "env.model.scheme=explicit"]
@@ -369,11 +371,21 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
         "logger.progress=false",
     ]
     interval = batched(1).simulator.steps(3.0)  # SMALL's decision interval, in steps of dt
-    runs = {}
-    for name, ranks, replicas in (("one_rank", 1, 4), ("two_ranks", 2, 2)):
-        runs[name] = tmp_path / name
-        arguments = [f"env.replicas={replicas}", f"hydra.run.dir={runs[name]}"]
-        result = run(["physicsrl-train", *settings, *arguments], tmp_path, ranks)
+    layouts = (("one_rank", 1, 4), ("two_ranks", 2, 2))
+    runs = {name: tmp_path / name for name, *_ in layouts}
+    results = together(  # the two runs at the same time
+        *(
+            partial(
+                run,
+                ["physicsrl-train", *settings, f"env.replicas={replicas}"]
+                + [f"hydra.run.dir={runs[name]}"],
+                tmp_path,
+                ranks,
+            )
+            for name, ranks, replicas in layouts
+        )
+    )
+    for (name, ranks, replicas), result in zip(layouts, results, strict=True):
         assert result.returncode == 0, result.stdout + result.stderr
         summary = json.loads((runs[name] / "summary.json").read_text())["summary"]
         assert summary["environments"] == 4 and summary["frames"] == 4 * 2 * 4
@@ -398,17 +410,19 @@ def test_replicas_train_and_evaluate_as_the_petsc_path_and_as_groups(tmp_path):
         "petsc": (1, '["env.model.backend=petsc","env.replicas=1"]'),
     }
     rows = {}
-    for name, (ranks, overrides) in evaluations.items():
-        evaluate = [
-            "physicsrl-eval",
-            f"run={runs['one_rank']}",
-            "seeds=3",
-            "gif=false",
-            "curve=false",
-            f"overrides={overrides}",
-            f"hydra.run.dir={tmp_path / name}",
-        ]
-        result = run(evaluate, tmp_path, ranks)
+    evaluate = ["physicsrl-eval", f"run={runs['one_rank']}", "seeds=3", "gif=false", "curve=false"]
+    results = together(  # the two evaluations at the same time
+        *(
+            partial(
+                run,
+                [*evaluate, f"overrides={overrides}", f"hydra.run.dir={tmp_path / name}"],
+                tmp_path,
+                ranks,
+            )
+            for name, (ranks, overrides) in evaluations.items()
+        )
+    )
+    for name, result in zip(evaluations, results, strict=True):
         assert result.returncode == 0, result.stdout + result.stderr
         rows[name] = table(tmp_path / name / "eval.csv")
     assert len(rows["torch"]) > 3  # the agent and the baselines
