@@ -6,11 +6,12 @@ import shlex
 import subprocess
 import sys
 import sysconfig
+from functools import partial
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import MPIEXEC, ROOT
+from tests.conftest import MPIEXEC, ROOT, together
 
 BIN = Path(sys.executable).parent
 QUICK = ["calls=2000", "repeats=1", "idle_seconds=0.1"]
@@ -166,7 +167,8 @@ def test_a_new_run_refuses_a_directory_that_holds_another_runs_checkpoints(tmp_p
     every rank in one line before Hydra writes there (the runs' checkpoints mixed: an
     evaluation then read the other run's policy; an evaluation replaced the run's eval.csv,
     its learning curve); resume=true is how to continue it. An evaluation into an earlier
-    one's directory too (its GIF stayed beside the new tables)."""
+    one's directory too (its GIF stayed beside the new tables). The four commands run at the
+    same time."""
     train = [str(BIN / "physicsrl-train"), "iterations=1", "env.mesh.cells=8"]
     evaluate = [str(BIN / "physicsrl-eval"), f"run={tmp_path / 'run'}"]
     for directory, where in ((tmp_path / "run", "."), (tmp_path / "sweep", "1")):
@@ -195,8 +197,8 @@ def test_a_new_run_refuses_a_directory_that_holds_another_runs_checkpoints(tmp_p
             "holds an earlier evaluation's results",
         ),
     ]
-    for key, command, named in runs:
-        result = run(command, cwd=tmp_path)
+    results = together(*(partial(run, command, cwd=tmp_path) for _, command, _ in runs))
+    for (key, _, named), result in zip(runs, results, strict=True):
         assert result.returncode == 2, result.stderr
         [line] = result.stderr.splitlines()
         assert line.startswith(f"error: {key}=") and named in line, line
