@@ -15,12 +15,13 @@ import shlex
 import shutil
 import subprocess
 import sys
+from functools import partial
 
 import pytest
 import torch
 
 from physicsrl.checkpoint import Checkpoints, damage, read
-from tests.conftest import MPIEXEC, ROOT
+from tests.conftest import MPIEXEC, ROOT, together
 from tests.test_train import (
     TOY,
     TRAIN,
@@ -56,12 +57,18 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     one before in its own directory and reproduces the lost checkpoint bit for bit; the
     resuming command's directory holds only its config, its log and ``resumed.txt``. A resume
     by a job of 2 environments (the run had 1): one line naming both, no ``resumed.txt``. All
-    three truncated: one line naming them, exit status 2."""
+    three truncated (in a copy of the run): one line naming them, exit status 2. The three
+    refused resumes run at the same time."""
     first, second = tmp_path / "first", tmp_path / "second"
     result = run([TRAIN, *SHORT, f"hydra.run.dir={first}"], tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
     checkpoints = Checkpoints(first / "checkpoints", keep=3)
     assert [p.name for p in checkpoints.paths()] == [checkpoint_name(i) for i in (2, 4, 6)]
+    copy = tmp_path / "copy"
+    shutil.copytree(first, copy)
+    copied = Checkpoints(copy / "checkpoints", keep=3)
+    for path in copied.paths():
+        truncate(path, 0.9)
     newest = checkpoints.latest()
     original = read(newest)
     truncate(newest)
@@ -85,30 +92,28 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     assert str(first) in (second / "resumed.txt").read_text()
 
     mismatched = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"resume={first}"]
-    result = run([*mismatched, f"hydra.run.dir={tmp_path / 'two'}"], tmp_path)
+    mismatched += [f"hydra.run.dir={tmp_path / 'two'}"]
+    # another task: refused before anything is built (it trained the other task on the run's
+    # buffer and network, warning about each setting)
+    other = [TRAIN, *SHORT, "env=ms", f"resume={first}", f"hydra.run.dir={tmp_path / 'other'}"]
+    unreadable = [TRAIN, *SHORT, f"hydra.run.dir={tmp_path / 'third'}", f"resume={copy}"]
+    refused = together(
+        *(partial(run, arguments, tmp_path) for arguments in (mismatched, other, unreadable))
+    )
     assert_refused(
-        result,
+        refused[0],
         "error: the checkpoint's run had 1 environment(s), this job has 2 (mpi.ranks / "
         "mpi.ranks_per_env): resume with the same number",
     )
     assert not (tmp_path / "two" / "resumed.txt").exists()
-    # another task: refused before anything is built (it trained the other task on the run's
-    # buffer and network, warning about each setting)
-    other = [TRAIN, *SHORT, "env=ms", f"resume={first}", f"hydra.run.dir={tmp_path / 'other'}"]
     assert_refused(
-        run(other, tmp_path),
+        refused[1],
         "error: resume: env.name=atp where the checkpoint's run has heat: a resume goes on with "
         "the run's task (give its +experiment or env, observation and reward)",
     )
-
-    for path in checkpoints.paths():
-        truncate(path, 0.9)
-    result = run(
-        [TRAIN, *SHORT, f"hydra.run.dir={tmp_path / 'third'}", f"resume={first}"], tmp_path
-    )
     assert_refused(
-        result,
-        f"error: no readable checkpoint in {checkpoints.directory}: "
+        refused[2],
+        f"error: no readable checkpoint in {copied.directory}: "
         + ", ".join(checkpoint_name(i) for i in (6, 4, 2)),
     )
 
