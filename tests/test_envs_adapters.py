@@ -1,10 +1,11 @@
 """Gymnasium adapter, determinism across rank counts, the SB3 example (issue 4)."""
 
 import json
+from functools import partial
 
 import numpy as np
 import pytest
-from conftest import SMALL_ATP, run_mpi
+from conftest import SMALL_ATP, run_mpi, together
 from gymnasium.utils.env_checker import check_env
 
 from physicsrl.coordinated import Coordinator
@@ -46,12 +47,21 @@ def test_same_seed_same_trajectory_on_1_and_2_ranks():
     assert len(starts) > 1
 
 
+@pytest.fixture(scope="module")
+def bad_action_runs():
+    """``envs_bad_action.py`` on 1 and on 2 ranks (started together), by ranks."""
+    script = "tests/mpi_scripts/envs_bad_action.py"
+    runs = together(*(partial(run_mpi, ranks, script, timeout=120) for ranks in (1, 2)))
+    return dict(zip((1, 2), runs, strict=True))
+
+
 @pytest.mark.parametrize("ranks", [1, 2])
-def test_a_bad_action_is_refused_on_the_leader_and_the_env_goes_on(ranks):
+def test_a_bad_action_is_refused_on_the_leader_and_the_env_goes_on(bad_action_runs, ranks):
     """Out of range, negative, fractional (not truncated to a valid one) and boolean actions:
     one ValueError each on the leader, before any rank steps (on 2 ranks the job is not
-    aborted), and the next valid step is the episode's first."""
-    result = run_mpi(ranks, "tests/mpi_scripts/envs_bad_action.py", timeout=120)
+    aborted), and the next valid step is the episode's first (the 1- and 2-rank jobs run at
+    the same time)."""
+    result = bad_action_runs[ranks]
     refused = [line for line in result.stdout.splitlines() if line.startswith("refused:")]
     assert [line.split("got ")[1] for line in refused] == ["2", "-1", "1.7", "0.5", "True"]
     assert "must be an integer in 0..1" in refused[0]

@@ -4,13 +4,14 @@ import json
 import math
 import subprocess
 import sys
+from functools import partial
 
 import dolfinx_solver  # noqa: F401 (loads MPI before dolfinx)
 import numpy as np
 import pytest
 import torch
 import ufl
-from conftest import SMALL_ATP
+from conftest import SMALL_ATP, run_mpi, together
 from dolfinx import fem, mesh
 from mpi4py import MPI
 from tensordict import TensorDict
@@ -124,12 +125,21 @@ def test_atp_failure_and_success_by_hand():
         assert out["reward"].item() == 500 - first
 
 
+@pytest.fixture(scope="module")
+def diverged_runs():
+    """``envs_diverged.py`` on 1 and on 2 ranks (started together), by ranks."""
+    script = "tests/mpi_scripts/envs_diverged.py"
+    runs = together(*(partial(run_mpi, ranks, script, timeout=120) for ranks in (1, 2)))
+    return dict(zip((1, 2), runs, strict=True))
+
+
 @pytest.mark.parametrize("ranks", [1, 2])
-def test_divergence_truncates_and_training_goes_on(mpi, ranks):
+def test_divergence_truncates_and_training_goes_on(diverged_runs, ranks):
     """dt = 0.1 with the shock's current blows up: the step ends the episode as truncated with
     "diverged" set, and the next reset starts a normal episode; on 2 ranks the follower, which
-    raised the same error in the parallel call, goes on serving."""
-    result = mpi(ranks, "tests/mpi_scripts/envs_diverged.py", timeout=120)
+    raised the same error in the parallel call, goes on serving (the 1- and 2-rank jobs run
+    at the same time)."""
+    result = diverged_runs[ranks]
     line = next(line for line in result.stdout.splitlines() if line.startswith("RESULT "))
     steps = json.loads(line.removeprefix("RESULT "))
     shock = {"diverged": True, "truncated": True, "terminated": False, "done": True}
