@@ -4,11 +4,12 @@ import functools
 import re
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT, run_mpi
+from tests.conftest import ROOT, run_mpi, together
 
 PAIR = r"([a-zA-Z ]+): (-?[0-9.]+)"
 
@@ -24,15 +25,29 @@ SMOKE = {
 @functools.cache
 def run_example(name: str, ranks: int) -> str:
     """The standard output of a short run of the example ``name`` on ``ranks`` ranks: serially
-    (1) or under ``mpiexec -n 2`` (2). Each run is made once, for every test that reads it."""
-    arguments = [str(ROOT / "examples" / name), *SMOKE.get(name, {}).get(ranks, [])]
-    if ranks == 2:
-        return run_mpi(2, *arguments, timeout=300).stdout
-    result = subprocess.run(
-        [sys.executable, *arguments], capture_output=True, text=True, timeout=300, cwd=ROOT
-    )
-    assert result.returncode == 0, result.stderr
-    return result.stdout
+    (1) or under ``mpiexec -n 2`` (2). Each run is made once, for every test that reads it;
+    the serial runs of all examples are started together, at the first one asked for."""
+    if ranks == 1:
+        result = serial_runs()[name]
+        assert result.returncode == 0, result.stderr
+        return result.stdout
+    return run_mpi(2, *example_arguments(name, 2), timeout=300).stdout
+
+
+def example_arguments(name: str, ranks: int) -> list[str]:
+    return [str(ROOT / "examples" / name), *SMOKE.get(name, {}).get(ranks, [])]
+
+
+def run_serially(name: str) -> subprocess.CompletedProcess:
+    command = [sys.executable, *example_arguments(name, 1)]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=ROOT)
+
+
+@functools.cache
+def serial_runs() -> dict[str, subprocess.CompletedProcess]:
+    """Example name -> its serial run; the runs (one process each) at the same time."""
+    names = [example.name for example in EXAMPLES]
+    return dict(zip(names, together(*(partial(run_serially, name) for name in names)), strict=True))
 
 
 @pytest.mark.parametrize("ranks", [1, 2])
