@@ -7,6 +7,7 @@ import subprocess
 import sys
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -55,6 +56,12 @@ def together(*calls: Callable):
     with ThreadPoolExecutor(len(calls)) as pool:
         futures = [pool.submit(call) for call in calls]
         return [future.result() for future in futures]
+
+
+def on_one_and_two_ranks(script: str) -> dict[int, subprocess.CompletedProcess]:
+    """``script`` run on 1 and on 2 ranks (started together, :func:`together`), by ranks."""
+    runs = together(*(partial(run_mpi, ranks, script, timeout=120) for ranks in (1, 2)))
+    return dict(zip((1, 2), runs, strict=True))
 
 
 @pytest.fixture

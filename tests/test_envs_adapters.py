@@ -1,11 +1,10 @@
 """Gymnasium adapter, determinism across rank counts, the SB3 example (issue 4)."""
 
 import json
-from functools import partial
 
 import numpy as np
 import pytest
-from conftest import SMALL_ATP, run_mpi, together
+from conftest import SMALL_ATP, on_one_and_two_ranks, run_mpi
 from gymnasium.utils.env_checker import check_env
 
 from physicsrl.coordinated import Coordinator
@@ -50,9 +49,7 @@ def test_same_seed_same_trajectory_on_1_and_2_ranks():
 @pytest.fixture(scope="module")
 def bad_action_runs():
     """``envs_bad_action.py`` on 1 and on 2 ranks (started together), by ranks."""
-    script = "tests/mpi_scripts/envs_bad_action.py"
-    runs = together(*(partial(run_mpi, ranks, script, timeout=120) for ranks in (1, 2)))
-    return dict(zip((1, 2), runs, strict=True))
+    return on_one_and_two_ranks("tests/mpi_scripts/envs_bad_action.py")
 
 
 @pytest.mark.parametrize("ranks", [1, 2])

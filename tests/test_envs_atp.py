@@ -4,14 +4,13 @@ import json
 import math
 import subprocess
 import sys
-from functools import partial
 
 import dolfinx_solver  # noqa: F401 (loads MPI before dolfinx)
 import numpy as np
 import pytest
 import torch
 import ufl
-from conftest import SMALL_ATP, run_mpi, together
+from conftest import SMALL_ATP, on_one_and_two_ranks
 from dolfinx import fem, mesh
 from mpi4py import MPI
 from tensordict import TensorDict
@@ -128,9 +127,7 @@ def test_atp_failure_and_success_by_hand():
 @pytest.fixture(scope="module")
 def diverged_runs():
     """``envs_diverged.py`` on 1 and on 2 ranks (started together), by ranks."""
-    script = "tests/mpi_scripts/envs_diverged.py"
-    runs = together(*(partial(run_mpi, ranks, script, timeout=120) for ranks in (1, 2)))
-    return dict(zip((1, 2), runs, strict=True))
+    return on_one_and_two_ranks("tests/mpi_scripts/envs_diverged.py")
 
 
 @pytest.mark.parametrize("ranks", [1, 2])
