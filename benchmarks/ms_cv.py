@@ -10,7 +10,7 @@ edges; on triangles along their edges and along their hypotenuses, and the table
 larger error in magnitude (a spiral's front runs every way). The ratio h / width uses the
 cells' diameter sqrt(2) h, as :func:`~physicsrl.fem.resolution.resolution` does, and
 width = sqrt(D tau_in). Writes the library's table ``physicsrl/fem/cv_error.csv`` and
-``benchmarks/results/ms_cv.txt`` (command, table). Serial, a few minutes.
+``benchmarks/results/ms_cv.txt`` (command, table). Serial, about a minute.
 
     python benchmarks/ms_cv.py
     python benchmarks/ms_cv.py --at 2000:0.03 4000:0.015   # seconds
