@@ -11,8 +11,10 @@ aborts the job after reporting why (:func:`ended`). A job that ends unmarked get
 
     error: rank 1 ended before its job did (exited with status 0); the launcher ends every rank
 
-and the guard exits non-zero (the job's status, 1 for 0, 128 + N for signal N), so the launcher
-ends every rank with a failure. A marked end exits with the job's own status, silently.
+and the guard asks the launcher to end every rank with the job's status (1 for 0, 128 + N for
+signal N) as ``MPI_Abort`` does, by the PMI command ``abort`` on the launcher's connection, then
+exits with it (a launcher without that connection ends the job when it sees the guard exit
+non-zero). A marked end exits with the job's own status, silently.
 
 Every ``physicsrl-*`` command guards its ranks under a launcher (``mpi.ranks=N`` launches
 included); a script is guarded with ``mpiexec -n 4 python -m physicsrl.guard script.py [args]``
@@ -92,6 +94,7 @@ def _watch(job: int, marker: int) -> NoReturn:
         signal.signal(signum, signal.SIG_IGN)
     _, status = os.waitpid(job, 0)
     code = os.waitstatus_to_exitcode(status)  # -N: killed by signal N
+    exit_status = 128 - code if code < 0 else code
     # blocks while a process the job forked still holds the pipe: the launcher's connection
     # is held open by that process too, and the job ends when it does (measured: with a
     # non-blocking read the job hangs, as it does unguarded)
@@ -107,8 +110,23 @@ def _watch(job: int, marker: int) -> NoReturn:
             "the launcher ends every rank\n"
         )
         sys.stderr.flush()
-        code = code or 1
-    os._exit(128 - code if code < 0 else code)  # not the job's atexit handlers a second time
+        exit_status = exit_status or 1
+        _abort(exit_status)
+    os._exit(exit_status)  # not the job's atexit handlers a second time
+
+
+def _abort(code: int) -> None:
+    """Ask the launcher to end every rank with status ``code``, as ``MPI_Abort`` does: the PMI
+    command ``abort`` on the process manager's connection ``PMI_FD`` (MPICH's), which the job
+    inherited from the guard and spoke through. Only the guard's exit would tell it otherwise:
+    MPICH's launcher then returns whichever status it sees first (1, or 9 for a rank it
+    killed), and about once in 1,000 jobs it missed that exit and left the others waiting."""
+    connection = os.environ.get("PMI_FD", "")
+    if connection.isdigit():
+        try:
+            os.write(int(connection), f"cmd=abort exitcode={code}\n".encode())
+        except OSError:  # not a PMI connection (any more): the guard's exit ends the job
+            pass
 
 
 def run(arguments: list[str]) -> NoReturn:
