@@ -13,8 +13,10 @@ what TorchRL does not do:
   starts, not at its first save;
 - :meth:`Checkpoints.newest_readable` skips damaged checkpoints (the newest one truncated by a
   full disk or a crash while copying), with one warning naming each;
-- :func:`read`: a checkpoint's stored states without the objects they came from;
-- :func:`find_run`: the run directory of ``resume=``.
+- :func:`read`: a checkpoint's stored states without the objects they came from.
+
+The run directory that ``resume=`` names is found by
+:func:`physicsrl.run_directory.find_run`, before torch loads.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from torchrl.checkpoint import (
     StateDictCheckpointAdapter,
 )
 
-__all__ = ["Checkpoints", "State", "read", "checkpoint_file", "find_run", "CheckpointsError"]
+__all__ = ["Checkpoints", "State", "read", "checkpoint_file", "CheckpointsError"]
 
 log = logging.getLogger("physicsrl.checkpoint")
 
@@ -162,24 +164,3 @@ def checkpoint_file(run: str | Path) -> Path:
     if latest is None:
         raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
     return latest
-
-
-def find_run(resume: str, runs: Path) -> Path:
-    """The run directory to resume: ``resume`` itself (a run directory or a checkpoint file),
-    or with ``resume == "true"`` the directory under ``runs`` whose newest checkpoint is the
-    newest."""
-
-    def latest(run: Path) -> Path | None:
-        return Checkpoints(run / "checkpoints", keep=1).latest()
-
-    if resume.lower() != "true":
-        path = Path(resume).expanduser()
-        if path.is_file():
-            path = path.parent.parent
-        if not latest(path):
-            raise FileNotFoundError(f"resume={resume}: no checkpoint under {path / 'checkpoints'}")
-        return path
-    candidates = [d for d in (runs.iterdir() if runs.is_dir() else []) if d.is_dir() and latest(d)]
-    if not candidates:
-        raise FileNotFoundError(f"resume=true: no run with a checkpoint under {runs}")
-    return max(candidates, key=lambda d: latest(d).stat().st_mtime)

@@ -1,12 +1,15 @@
-"""The Hydra callback that checks the run directory can be written before Hydra writes there.
+"""The run directory: the Hydra callback that checks it before Hydra writes there, and the run
+that ``resume=`` continues.
 
-Named in ``conf/common.yaml`` (``hydra.callbacks``); a module of its own so that importing
-:mod:`physicsrl.launch` (before an MPI re-launch) does not import Hydra.
+The callback is named in ``conf/common.yaml`` (``hydra.callbacks``); a module of its own so
+that importing :mod:`physicsrl.launch` (before an MPI re-launch) does not import Hydra, and
+without torch, so that a bad run directory or ``resume=`` is refused before torch loads.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
@@ -22,21 +25,30 @@ class WritableRunDirectory(Callback):
     other's, an evaluation would replace the run's ``eval.csv`` and ``.hydra/``), and for an
     evaluation no earlier evaluation's results (its GIF or fields would stay beside the new
     tables); if not, every rank ends with status 2 and one line naming the directory, instead
-    of the leader failing in Hydra's log setup while the followers wait for it."""
+    of the leader failing in Hydra's log setup while the followers wait for it. A training run
+    with ``resume`` set is refused so, first, if :func:`find_run` finds no run to continue."""
 
     def on_run_start(self, config, **kwargs) -> None:
         evaluation = "run" in config
+        resume = None if evaluation else config.get("resume")
         taken = {}
-        if evaluation or ("resume" in config and not config.resume):
+        if evaluation or ("resume" in config and not resume):
             taken[RUN] = CHECKPOINTS
         if evaluation:
             taken["eval_summary.csv"] = "an earlier evaluation's results; name a new directory"
-        agree_directory_is_writable("hydra.run.dir", config.hydra.run.dir, taken)
+        directory = config.hydra.run.dir
+
+        def check() -> None:
+            if resume:  # before the directory is made: a refused resume writes nothing
+                find_run(str(resume), Path(directory).parent)
+            check_directory("hydra.run.dir", directory, taken)
+
+        agree(check)
 
     def on_multirun_start(self, config, **kwargs) -> None:
         new_runs = "resume" in config and not config.resume
         taken = {JOBS: SWEEP_CHECKPOINTS} if new_runs else {}
-        agree_directory_is_writable("hydra.sweep.dir", config.hydra.sweep.dir, taken)
+        agree(lambda: check_directory("hydra.sweep.dir", config.hydra.sweep.dir, taken))
 
 
 RUN, JOBS = "checkpoints/ckpt-*", "*/checkpoints/ckpt-*"  # a run's, a sweep's checkpoints
@@ -50,30 +62,61 @@ SWEEP_CHECKPOINTS = (
 )
 
 
-def agree_directory_is_writable(key: str, directory: str, taken: dict[str, str]) -> None:
-    """The leader creates ``directory`` and writes a byte there, and looks for files matching
-    the glob patterns of ``taken`` in it; every rank learns the outcome (collective) and
-    refuses to go on if the write failed or such a file is there (the line says ``taken``'s
-    value: what the file is)."""
+def agree(check: Callable[[], None]) -> None:
+    """The leader runs ``check``; every rank learns whether it raised an OSError (collective)
+    and, if it did, ends with status 2 and its message in one line."""
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
     problem = None
-    found = [] if comm.rank else [w for p, w in taken.items() if next(Path(directory).glob(p), 0)]
-    if found:
-        problem = f"{key}={directory}: it holds {found[0]}"
-    elif comm.rank == 0:
-        probe = Path(directory) / ".physicsrl-write-test"
+    if comm.rank == 0:
         try:
-            probe.parent.mkdir(parents=True, exist_ok=True)
-            with open(probe, "wb") as stream:
-                stream.write(b"x")
-                stream.flush()
-                os.fsync(stream.fileno())  # a full disk fails here, not at close
-            probe.unlink()
+            check()
         except OSError as error:
-            reason = error.strerror or str(error)
-            problem = f"{key}={directory}: cannot write the run directory there ({reason})"
+            problem = str(error)
     problem = comm.bcast(problem, 0)
     if problem is not None:
         refuse(problem)
+
+
+def check_directory(key: str, directory: str, taken: dict[str, str]) -> None:
+    """Create ``directory`` and write a byte there; FileExistsError if a file there matches a
+    glob pattern of ``taken`` (the message says its value: what the file is), OSError if the
+    write fails, each naming ``key``."""
+    found = [what for pattern, what in taken.items() if next(Path(directory).glob(pattern), 0)]
+    if found:
+        raise FileExistsError(f"{key}={directory}: it holds {found[0]}")
+    probe = Path(directory) / ".physicsrl-write-test"
+    try:
+        probe.parent.mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as stream:
+            stream.write(b"x")
+            stream.flush()
+            os.fsync(stream.fileno())  # a full disk fails here, not at close
+        probe.unlink()
+    except OSError as error:
+        reason = error.strerror or str(error)
+        cannot = f"{key}={directory}: cannot write the run directory there ({reason})"
+        raise OSError(cannot) from None
+
+
+def latest_checkpoint(run: Path) -> Path | None:
+    """The newest checkpoint file of the run directory ``run`` (by name: its iteration)."""
+    return max(run.glob(RUN), default=None)
+
+
+def find_run(resume: str, runs: Path) -> Path:
+    """The run directory to resume: ``resume`` itself (a run directory or a checkpoint file),
+    or with ``resume == "true"`` the directory under ``runs`` whose newest checkpoint is the
+    newest; FileNotFoundError naming ``resume`` if it has no checkpoint."""
+    if resume.lower() != "true":
+        path = Path(resume).expanduser()
+        if path.is_file():
+            path = path.parent.parent
+        if latest_checkpoint(path) is None:
+            raise FileNotFoundError(f"resume={resume}: no checkpoint under {path / 'checkpoints'}")
+        return path
+    candidates = [d for d in (runs.iterdir() if runs.is_dir() else []) if latest_checkpoint(d)]
+    if not candidates:
+        raise FileNotFoundError(f"resume=true: no run with a checkpoint under {runs}")
+    return max(candidates, key=lambda d: latest_checkpoint(d).stat().st_mtime)

@@ -31,7 +31,7 @@ import torch
 from mpi4py import MPI
 
 from physicsrl import builders
-from physicsrl.checkpoint import Checkpoints, find_run, read
+from physicsrl.checkpoint import Checkpoints, read
 from physicsrl.config import TrainConfig, as_dict, check_sweep_resume, typed
 from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.groups import environments
@@ -39,6 +39,7 @@ from physicsrl.envs.members import Members
 from physicsrl.envs.task import Task
 from physicsrl.evaluation import compare
 from physicsrl.launch import output_dir, sweeping
+from physicsrl.run_directory import find_run
 from physicsrl.tables import format_table, provenance, rounded
 
 log = logging.getLogger("physicsrl.train")
@@ -88,7 +89,7 @@ def train(cfg) -> None:
 
 
 def resume_request(resume: str, run_dir: Path) -> str:
-    """What to resume (:func:`~physicsrl.checkpoint.find_run`'s ``resume``): in a sweep, each
+    """What to resume (:func:`~physicsrl.run_directory.find_run`'s ``resume``): in a sweep, each
     job its own run directory; ValueError for one run directory named for every job."""
     if not sweeping():
         return resume

@@ -256,6 +256,7 @@ PROCESSES = [
     (2, ["physicsrl-eval", f"run={RUN}", 'overrides=["nosuch=1"]'], "unknown key 'nosuch'"),
     (2, ["physicsrl-train", "-m", "seed=0,1", "--cfg", "job"], "--multirun and --cfg: Hydra"),
     (2, ["physicsrl-train", "--nosuch", "seed=1"], "--nosuch: no such flag"),
+    (2, ["physicsrl-train", "resume=true"], "resume=true: no run with a checkpoint under"),
 ]
 
 
@@ -281,16 +282,19 @@ def test_real_commands_print_one_line_once_and_every_rank_ends(tmp_path, checkpo
 
 
 @pytest.mark.parametrize(
-    "command, arguments",
+    "command, arguments, loaded",
     [
-        ("train", ["iterations=-1"]),
-        ("eval", ["run=nosuch"]),
-        ("bench", ["ping", "calls=-5"]),
+        ("train", ["iterations=-1"], []),
+        ("train", ["resume=nosuch"], ["dolfinx"]),  # a valid config: its task was checked
+        ("eval", ["run=nosuch"], []),
+        ("bench", ["ping", "calls=-5"], []),
     ],
 )
-def test_a_bad_command_line_is_refused_before_torch_loads(tmp_path, command, arguments):
-    """The refusal costs the command line's parsing, not torch's ~2 s import (the bench's took
-    it: its tables' module imported torch for the CPU's name in a results file)."""
+def test_a_bad_command_line_is_refused_before_torch_loads(tmp_path, command, arguments, loaded):
+    """The refusal costs the command line's parsing (and the task's check, which imports the
+    simulators), not torch's ~2 s import (the bench's took it: its tables' module imported torch
+    for the CPU's name in a results file; a resume of no run took it before the run was looked
+    for)."""
     script = (
         f"import sys; sys.argv = {['physicsrl-' + command, *arguments]!r}\n"
         f"from physicsrl.cli.{command} import main\n"
@@ -299,7 +303,7 @@ def test_a_bad_command_line_is_refused_before_torch_loads(tmp_path, command, arg
     result = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path
     )
-    assert (result.returncode, result.stdout) == (2, "[]\n"), result.stderr
+    assert (result.returncode, result.stdout) == (2, f"{loaded}\n"), result.stderr
     assert len(result.stderr.splitlines()) == 1, result.stderr
 
 

@@ -21,6 +21,7 @@ import pytest
 import torch
 
 from physicsrl.checkpoint import Checkpoints, damage, read
+from physicsrl.run_directory import find_run
 from tests.conftest import MPIEXEC, ROOT, together
 from tests.test_train import (
     TOY,
@@ -50,6 +51,26 @@ SHORT = [
 
 def truncate(path, fraction: float = 0.5) -> None:
     path.write_bytes(path.read_bytes()[: int(path.stat().st_size * fraction)])
+
+
+def test_resume_finds_the_run_with_the_newest_checkpoint_or_names_what_has_none(tmp_path):
+    """``resume=true``: of the runs beside this one, the one whose newest checkpoint was written
+    last (not the newest run, nor the one with the most iterations); a run directory or one of
+    its checkpoint files: that run; a directory without checkpoints: one line naming it."""
+    runs = tmp_path / "outputs"
+    for age, (name, iteration) in enumerate([("b", 8), ("c", 2), ("a", 4)]):  # a: written last
+        checkpoint = runs / name / "checkpoints" / checkpoint_name(iteration)
+        checkpoint.parent.mkdir(parents=True)
+        checkpoint.write_bytes(b"")
+        os.utime(checkpoint, (1_000_000 + age, 1_000_000 + age))
+    (runs / "d" / ".hydra").mkdir(parents=True)  # a run that wrote no checkpoint: never chosen
+    assert find_run("true", runs) == find_run("True", runs) == runs / "a"
+    assert find_run(str(runs / "c"), runs) == runs / "c"
+    assert find_run(str(runs / "b" / "checkpoints" / checkpoint_name(8)), runs) == runs / "b"
+    with pytest.raises(FileNotFoundError, match=r"resume=.*/d: no checkpoint under .*/d/check"):
+        find_run(str(runs / "d"), runs)
+    with pytest.raises(FileNotFoundError, match="resume=true: no run with a checkpoint under"):
+        find_run("true", runs / "d")
 
 
 def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_run(tmp_path):
