@@ -37,6 +37,8 @@ from torchrl.checkpoint import (
     StateDictCheckpointAdapter,
 )
 
+from physicsrl.run_directory import checkpoint_path
+
 __all__ = ["Checkpoints", "State", "read", "checkpoint_file", "CheckpointsError"]
 
 log = logging.getLogger("physicsrl.checkpoint")
@@ -156,11 +158,6 @@ def checkpoint_file(run: str | Path) -> Path:
     """The checkpoint of ``run``: a checkpoint file itself, or a run directory's newest one
     (ValueError naming ``run`` otherwise)."""
     path = Path(run).expanduser()
-    if path.is_file():
-        if not Checkpoint.is_checkpoint(path):
-            raise ValueError(f"run={run} is not a checkpoint file (a TorchRL {SUFFIX} archive)")
-        return path
-    latest = Checkpoints(path / "checkpoints", keep=1).latest()
-    if latest is None:
-        raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
-    return latest
+    if path.is_file() and not Checkpoint.is_checkpoint(path):
+        raise ValueError(f"run={run} is not a checkpoint file (a TorchRL {SUFFIX} archive)")
+    return checkpoint_path(str(run))

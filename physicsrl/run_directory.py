@@ -105,6 +105,18 @@ def latest_checkpoint(run: Path) -> Path | None:
     return max(run.glob(RUN), default=None)
 
 
+def checkpoint_path(run: str) -> Path:
+    """The checkpoint file that ``run`` names: ``run`` itself if it is a file, else the newest
+    checkpoint of the run directory ``run``; ValueError naming ``run`` if it has none."""
+    path = Path(run).expanduser()
+    if path.is_file():
+        return path
+    latest = latest_checkpoint(path)
+    if latest is None:
+        raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
+    return latest
+
+
 def find_run(resume: str, runs: Path) -> Path:
     """The run directory to resume: ``resume`` itself (a run directory or a checkpoint file),
     or with ``resume == "true"`` the directory under ``runs`` whose newest checkpoint is the

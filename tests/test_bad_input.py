@@ -287,14 +287,15 @@ def test_real_commands_print_one_line_once_and_every_rank_ends(tmp_path, checkpo
         ("train", ["iterations=-1"], []),
         ("train", ["resume=nosuch"], ["dolfinx"]),  # a valid config: its task was checked
         ("eval", ["run=nosuch"], []),
+        ("eval", ["run=."], []),  # a directory without checkpoints
         ("bench", ["ping", "calls=-5"], []),
     ],
 )
 def test_a_bad_command_line_is_refused_before_torch_loads(tmp_path, command, arguments, loaded):
     """The refusal costs the command line's parsing (and the task's check, which imports the
     simulators), not torch's ~2 s import (the bench's took it: its tables' module imported torch
-    for the CPU's name in a results file; a resume of no run took it before the run was looked
-    for)."""
+    for the CPU's name in a results file; a resume of no run, and an evaluation of a directory
+    without checkpoints, took it before the checkpoints were looked for)."""
     script = (
         f"import sys; sys.argv = {['physicsrl-' + command, *arguments]!r}\n"
         f"from physicsrl.cli.{command} import main\n"

@@ -25,13 +25,13 @@ def check(cfg, job) -> None:
     from omegaconf import OmegaConf
 
     from physicsrl.launch import check_layout
+    from physicsrl.run_directory import checkpoint_path
 
     check_layout(cfg.mpi.ranks_per_env, job.ranks)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
-    if not Path(str(cfg.run)).expanduser().exists():
-        raise ValueError(f"run={cfg.run}: no checkpoint file there or under its checkpoints/")
-    from physicsrl.checkpoint import checkpoint_file  # TorchRL (~6 s): for a path that exists
+    checkpoint_path(str(cfg.run))  # a file, or a run directory with one: before TorchRL loads
+    from physicsrl.checkpoint import checkpoint_file  # TorchRL (~6 s): is the file a checkpoint
 
     checkpoint_file(str(cfg.run))
     if cfg.fields and importlib.util.find_spec("adios2") is None:
