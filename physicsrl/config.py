@@ -305,7 +305,8 @@ class TrainConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     eval: Evaluation = field(default_factory=Evaluation)
-    # the cap on the Q-network's and the replay buffer's estimated bytes (check_memory)
+    # the cap on the estimated bytes of the Q-network, the replay buffer and the simulator,
+    # per process (check_memory)
     max_memory_gb: float = 16.0
 
     def __post_init__(self):

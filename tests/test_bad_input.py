@@ -121,6 +121,12 @@ ROWS = [
         ["env=ms", "env.model.backend=torch", "env.replicas=10000000"],
         "env.replicas=10000000 would need about 1.79e+03 GB (48 bytes per replica and dof)",
     ),
+    (
+        "train",
+        ["env=ms", "env.mesh.cells=100000"],
+        "env.mesh.cells=100000 would need about 9e+03 GB (900 bytes per cell, over "
+        "mpi.ranks_per_env=1, per rank)",
+    ),
     # physicsrl-eval
     ("eval", ["fps=0"], "fps must be a finite number > 0"),
     ("eval", ["fps=nan"], "fps must be a finite number > 0"),

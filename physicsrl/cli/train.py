@@ -32,13 +32,16 @@ def check_task(cfg, job) -> None:
 
 STATE_BYTES_PER_DOF = 6 * 8
 """The torch backend's memory per replica and dof: u, w and the step's temporaries (float64)."""
+MESH_BYTES_PER_CELL = 900
+"""A simulator's peak memory per cell of its mesh (DOLFINx/PETSc, one rank), rounded up from
+the Mitchell-Schaeffer model's at 1000 x 1000 cells: 870 bytes explicit, 550 implicit."""
 
 
 def check_run(cfg) -> None:
     """The task groups as :func:`physicsrl.envs.make_env` will read them, the reward's events
     among the task's, the observation inside the task's domain, the network's inputs among the
-    env's keys, and the memory of the network and the replay buffer
-    (:func:`~physicsrl.config.check_memory`); nothing is built.
+    env's keys, and the memory of the network, the replay buffer and the simulator on a square
+    mesh, per rank (:func:`~physicsrl.config.check_memory`); nothing is built.
     An env from ``env.factory`` checks its own settings (its keys and sizes are not known
     before it is built: each network input counts as one number)."""
     from physicsrl.config import check_memory, typed
@@ -76,12 +79,20 @@ def check_run(cfg) -> None:
             f"agent.network.inputs: {unknown[0]!r} is not an observation key of the "
             f"{task.name} task (its keys: {', '.join(inputs)})"
         )
-    replicas = getattr(task_config, "replicas", 1)
-    torch_backend = getattr(getattr(task_config, "model", None), "backend", None) == "torch"
-    dofs = (mesh.cells + 1) ** 2 if torch_backend and isinstance(mesh, SquareMesh) else 0
-    state = replicas * dofs * STATE_BYTES_PER_DOF
-    how = f"{STATE_BYTES_PER_DOF} bytes per replica and dof"
-    check_memory(config, inputs, task.n_actions, {f"env.replicas={replicas}": (state, how)})
+    simulator = {}
+    if isinstance(mesh, SquareMesh):
+        ranks = config.mpi.ranks_per_env  # the mesh's share per rank (1 for replicas)
+        simulator[f"env.mesh.cells={mesh.cells}"] = (
+            mesh.cells**2 * MESH_BYTES_PER_CELL / ranks,
+            f"{MESH_BYTES_PER_CELL} bytes per cell, over mpi.ranks_per_env={ranks}, per rank",
+        )
+        if getattr(getattr(task_config, "model", None), "backend", None) == "torch":
+            replicas = task_config.replicas
+            simulator[f"env.replicas={replicas}"] = (
+                replicas * (mesh.cells + 1) ** 2 * STATE_BYTES_PER_DOF,
+                f"{STATE_BYTES_PER_DOF} bytes per replica and dof",
+            )
+    check_memory(config, inputs, task.n_actions, simulator)
 
 
 def env_inputs(task, observation) -> dict[str, tuple[int, int]]:
