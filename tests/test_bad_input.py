@@ -124,7 +124,7 @@ ROWS = [
     (
         "train",
         ["env=ms", "env.mesh.cells=100000"],
-        "env.mesh.cells=100000 would need about 9e+03 GB (900 bytes per cell, over "
+        "env.mesh.cells=100000 would need about 1e+04 GB (1000 bytes per cell, over "
         "mpi.ranks_per_env=1, per rank)",
     ),
     # physicsrl-eval
