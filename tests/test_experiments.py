@@ -620,19 +620,25 @@ def test_resolved_timing_gpu_runs_are_the_results_tables():
 def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     """Every episode of the resolved timing task rerun at 2000 x 2000
     (experiments/results/atp_resolved_timing_2000/) against its row at 1000 x 1000: R1 on draw
-    09, and the bar (every 5th decision from 4), the runner-up schedule (a single shock at 4)
-    and G2's kept policy on all 20 held-out draws. Their means barely move (the bar 374.70,
-    85%; the single shock 330.05, 70%; G2 347.50, 75%, 1.80 shocks), but 4 of the 60 episodes
-    change outcome: the bar's on draws 06 and 10 and G2's on 10 and 14
-    (experiments/results/README.md)."""
+    09, and the bar (every 5th decision from 4), the two next schedules (a single shock at 4;
+    every 6th decision from 4, in ``every6from4/``) and G2's kept policy on all 20 held-out
+    draws. Their means barely move (the bar 374.70, 85%; the single shock 330.05, 70%; G2
+    347.50, 75%, 1.80 shocks) but for the third schedule's (292.65, 65%: it loses draw 06), and
+    5 of the 80 episodes change outcome: the bar's on draws 06 and 10, G2's on 10 and 14 and
+    the third schedule's on 06 (experiments/results/README.md)."""
     from physicsrl.tables import mean_metrics, read_per_policy
 
     results = ROOT / "experiments" / "results"
     fine = results / "atp_resolved_timing_2000"
     coarse = read_per_policy(results / "atp_resolved_timing_open_loop_cuda_per_seed.csv")
     names = {"single4": "single shock at 4", "every5from4": "every 5 from 4"}
+    names["every6from4"] = "every 6 from 4"
     pairs = {}  # (policy, draw) -> (return at 1000, return at 2000)
-    rows = list(csv.DictReader((fine / "atp_resolved_timing_convergence.csv").open()))
+    rows = [
+        row
+        for directory in (fine, fine / "every6from4")
+        for row in csv.DictReader((directory / "atp_resolved_timing_convergence.csv").open())
+    ]
     for row in rows:
         seed, name = int(row["seed"]), names[row["policy"]]
         (before,) = [r["return"] for r in coarse[name] if r["seed"] == seed]
@@ -649,7 +655,8 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
             for row in read_per_policy(path)["greedy DQN"]:
                 pairs[agent, row["seed"] % 1000] = (before[row["seed"]], row["return"])
     draws = lambda policy: sorted(d for p, d in pairs if p == policy)  # noqa: E731
-    assert draws("every 5 from 4") == draws("single shock at 4") == draws("G2") == list(range(20))
+    assert draws("every 5 from 4") == draws("single shock at 4") == list(range(20))
+    assert draws("every 6 from 4") == draws("G2") == list(range(20))
     assert draws("R1") == [9]
     differ = {key: value for key, value in pairs.items() if value[0] != value[1]}
     assert differ == {
@@ -658,6 +665,7 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
         ("every 5 from 4", 18): (436.0, 447.0),  # ended, with another return
         ("single shock at 4", 5): (476.0, 477.0),  # ended, one decision earlier
         ("single shock at 4", 6): (478.0, 459.0),  # ended, three decisions later
+        ("every 6 from 4", 6): (461.0, -20.0),  # ended, then failed
         ("G2", 10): (466.0, -20.0),  # ended, then failed
         ("G2", 14): (-40.0, 468.0),  # failed, then ended
         ("G2", 0): (467.0, 468.0),  # ended, one decision earlier
@@ -670,13 +678,14 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     metrics = ("return", "success", "shocks")
     schedules = [
         [{k: float(r[k]) for k in metrics} for r in rows if r["policy"] == name]
-        for name in ("every5from4", "single4")
+        for name in ("every5from4", "single4", "every6from4")
     ]
     g2 = read_per_policy(fine / "atp_resolved_timing_gpu_agent_eval_2000.csv")["greedy DQN"]
     means = [mean_metrics(per_seed) for per_seed in (*schedules, g2)]
     assert [(round(m["return"], 2), m["success"], m["shocks"]) for m in means] == [
         (374.7, 0.85, 3.0),
         (330.05, 0.7, 1.0),
+        (292.65, 0.65, 2.0),
         (347.5, 0.75, 1.8),
     ]
 
