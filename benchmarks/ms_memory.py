@@ -2,8 +2,8 @@
 ``physicsrl-train`` refuses a mesh too large (:data:`physicsrl.cli.train.MESH_BYTES_PER_CELL`).
 
 For each scheme and grid (cells x cells quadrilaterals of [-50, 50]^2, one rank), a fresh
-process builds the simulator and advances it 10 steps of dt = 0.03 (0.015 above 3,500 cells
-per side, the explicit scheme's limit); its peak resident memory less the peak after the
+process builds the simulator and advances it 10 steps of dt = 0.03 (or the explicit scheme's
+stability limit on that grid, if smaller); its peak resident memory less the peak after the
 imports, per cell, is set beside the estimate, with ``goal met`` when the estimate covers
 every peak measured. Writes ``benchmarks/results/ms_memory.txt`` (command, table).
 
@@ -35,13 +35,15 @@ def measure(cells: int, scheme: str) -> float:
     # isort: split
 
     from physicsrl.coordinated import Coordinator
+    from physicsrl.envs.atp import MSModel
     from physicsrl.envs.task import SquareMesh
     from physicsrl.fem import MonodomainMitchellSchaeffer
 
     imported = peak_bytes()
     coordinator = Coordinator()
-    domain = SquareMesh(cells, 50.0, "quadrilateral").create()
-    dt = 0.03 if cells <= 3500 else 0.015
+    grid = SquareMesh(cells, 50.0, "quadrilateral")
+    domain = grid.create()
+    dt = min(0.03, 0.99 * grid.explicit_limit(MSModel.D))
     simulator = MonodomainMitchellSchaeffer(coordinator, domain, scheme=scheme, dt=dt)
     with coordinator:
         simulator.advance_time(10 * dt)

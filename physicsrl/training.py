@@ -36,7 +36,7 @@ from physicsrl.config import TrainConfig, as_dict, check_sweep_resume, typed
 from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.groups import environments
 from physicsrl.envs.members import Members
-from physicsrl.envs.task import Task
+from physicsrl.envs.task import ResetDiverged, Task
 from physicsrl.evaluation import compare
 from physicsrl.launch import output_dir, sweeping
 from physicsrl.run_directory import find_run
@@ -169,7 +169,7 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     started = time.perf_counter()
     try:
         summary = dojo.train(config.iterations)
-    except NonFiniteTraining as error:
+    except (NonFiniteTraining, ResetDiverged) as error:
         print(f"error: {error}", file=sys.stderr, flush=True)
         raise SystemExit(1) from None
     summary["wall_s"] = time.perf_counter() - started  # this command's (total_s: the run's)

@@ -26,7 +26,7 @@ import torch
 from tensordict import TensorDict
 
 from physicsrl.config import held_out_seeds
-from tests.conftest import MPIEXEC, ROOT
+from tests.conftest import MPIEXEC, ROOT, SMALL_ATP
 
 BIN = Path(sys.executable).parent
 TRAIN = str(BIN / "physicsrl-train")
@@ -836,3 +836,18 @@ def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_check
     assert latest.name == "ckpt-000000000002.torchrl"
     loss = read(latest, ["loss"])["loss"]
     assert all(torch.isfinite(v).all() for v in loss.values() if v.is_floating_point())
+
+
+def test_a_time_step_on_which_every_reset_diverges_stops_training_with_one_line(tmp_path):
+    """dt = 0.2 on the ATP task: forward Euler blows the stimulated cells up during the reset's
+    stimulus (current 50 for 2 time units), so every reset draw comes out non-finite; under 2
+    ranks every rank exits with status 1 and the leader prints one line, no traceback."""
+    arguments = [str(MPIEXEC), "-n", "2", TRAIN, "env=ms", *SMALL_ATP, "env.model.dt=0.2"]
+    result = run([*arguments, "iterations=1", f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert result.returncode == 1, result.stdout + result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error")]
+    assert errors == [
+        "error: 10 reset draws in a row gave non-finite states: the time step is likely too "
+        "large for the scheme (lower env.model.dt or env.dt)"
+    ], result.stderr
+    assert "Traceback" not in result.stderr

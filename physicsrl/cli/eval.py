@@ -135,6 +135,7 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     from physicsrl.config import held_out_seeds, is_held_out, training_seeds_among
     from physicsrl.envs.env import PhysicsEnv
     from physicsrl.envs.groups import GroupedEnv
+    from physicsrl.envs.task import ResetDiverged
     from physicsrl.evaluation import compare
     from physicsrl.fem.output import render_series
     from physicsrl.render import episode_gif, record_fields
@@ -152,7 +153,10 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     policies = {"greedy DQN": dojo.q_network}
     if cfg.baselines:
         policies.update(baselines(env, train_cfg, seeds))
-    per_seed, means = compare(env, policies, seeds, dojo.action_counts)
+    try:
+        per_seed, means = compare(env, policies, seeds, dojo.action_counts)
+    except ResetDiverged as error:  # found by the first reset: the overrides' numerics
+        refuse_config(f"overrides: {error}")
     directory = output_dir()
     write_csv(directory / "eval.csv", per_seed)
     write_csv(directory / "eval_summary.csv", means)

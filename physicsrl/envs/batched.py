@@ -46,6 +46,7 @@ from physicsrl.envs.observations import Observation
 from physicsrl.envs.regions import CellAverage, disk, half_plane_gate, rectangle_above
 from physicsrl.envs.rewards import Reward
 from physicsrl.envs.snapshots import SnapshotCache
+from physicsrl.envs.task import ResetDiverged
 from physicsrl.fem.batched import BatchedMonodomain, per_replica
 from physicsrl.fem.integrals import form_rows
 from physicsrl.fem.resolution import report
@@ -240,10 +241,7 @@ class BatchedATPEnv(Members):
                     continue
                 pending[i] += 1
                 if pending[i] >= self.max_reset_attempts:
-                    raise RuntimeError(
-                        f"{self.max_reset_attempts} reset draws in a row gave non-finite "
-                        f"states (replica {i})"
-                    )
+                    raise ResetDiverged(self.max_reset_attempts, f" (replica {i})")
         self.decisions[replicas] = 0
         self.intervals[replicas] = 0
 

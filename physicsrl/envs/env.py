@@ -21,7 +21,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from physicsrl.envs.rewards import Reward
-from physicsrl.envs.task import Task
+from physicsrl.envs.task import ResetDiverged, Task
 
 
 class PhysicsEnv(EnvBase):
@@ -36,7 +36,8 @@ class PhysicsEnv(EnvBase):
     seed:
         Seed of the episode randomness (None: from the OS).
     max_reset_attempts:
-        Draws tried per reset before giving up when states keep coming out non-finite.
+        Draws tried per reset before giving up (:class:`~physicsrl.envs.task.ResetDiverged`)
+        when states keep coming out non-finite.
     """
 
     def __init__(
@@ -101,7 +102,7 @@ class PhysicsEnv(EnvBase):
                     },
                     batch_size=[],
                 )
-        raise RuntimeError(f"{self.max_reset_attempts} reset draws in a row gave non-finite states")
+        raise ResetDiverged(self.max_reset_attempts)
 
     def _step(self, tensordict: TensorDict) -> TensorDict:
         action = tensordict["action"]

@@ -63,6 +63,17 @@ class SquareMesh:
         return stability_limit(np.add.reduceat(np.abs(values), indptr[:-1]), lumped_mass(V), D)
 
 
+class ResetDiverged(RuntimeError):
+    """Every draw of a reset, ``max_reset_attempts`` in a row, came out non-finite: the
+    numerics cannot start an episode (training stops with this one line)."""
+
+    def __init__(self, attempts: int, where: str = ""):
+        super().__init__(
+            f"{attempts} reset draws in a row gave non-finite states{where}: the time step is "
+            "likely too large for the scheme (lower env.model.dt or env.dt)"
+        )
+
+
 @dataclass
 class Transition:
     """What one step reports to the leader.
