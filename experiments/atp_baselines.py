@@ -60,11 +60,11 @@ from physicsrl.envs.baselines import (
     open_loop_schedules,
     two_shock_schedules,
 )
-from physicsrl.envs.groups import environments
+from physicsrl.envs.layout import environments
 from physicsrl.envs.task import TASKS
 from physicsrl.evaluation import compare
+from physicsrl.learner import n_environments
 from physicsrl.tables import mean_metrics, provenance, read_per_policy, write_csv
-from physicsrl.training import n_environments
 
 POLICIES = ("never", "always", "random", "every4", "single")  # atp_baselines' order
 

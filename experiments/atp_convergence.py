@@ -31,7 +31,8 @@ from physicsrl.cli.train import train_config
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, EveryKth, Schedule
-from physicsrl.envs.groups import GroupedEnv, environments
+from physicsrl.envs.groups import GroupedEnv
+from physicsrl.envs.layout import environments
 from physicsrl.evaluation import run_episodes
 from physicsrl.tables import provenance
 

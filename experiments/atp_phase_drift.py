@@ -38,7 +38,7 @@ from physicsrl.cli.train import train_config
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant
-from physicsrl.envs.groups import environments
+from physicsrl.envs.layout import environments
 from physicsrl.evaluation import episode
 from physicsrl.tables import provenance
 

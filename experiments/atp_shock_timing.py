@@ -37,7 +37,7 @@ from physicsrl.cli.train import train_config
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs.baselines import Constant, Policy, Schedule
-from physicsrl.envs.groups import environments
+from physicsrl.envs.layout import environments
 from physicsrl.envs.members import spread_episodes
 from physicsrl.evaluation import MAX_STEPS, run_jobs
 from physicsrl.tables import mean_metrics, provenance, write_csv

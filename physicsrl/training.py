@@ -18,42 +18,32 @@ line (exit status 2) before any environment is built.
 
 from __future__ import annotations
 
-import json
-import logging
 import random
 import signal
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
-import torch
 from mpi4py import MPI
 
-from physicsrl import builders
-from physicsrl.checkpoint import Checkpoints, read
-from physicsrl.config import TrainConfig, as_dict, check_sweep_resume, typed
-from physicsrl.dojo import Dojo, NonFiniteTraining
-from physicsrl.envs.groups import environments
-from physicsrl.envs.members import Members
-from physicsrl.envs.task import ResetDiverged, Task
-from physicsrl.evaluation import compare
-from physicsrl.launch import output_dir, sweeping
-from physicsrl.run_directory import find_run
-from physicsrl.tables import format_table, provenance, rounded
-
-log = logging.getLogger("physicsrl.train")
-
-RESUMED = "resumed.txt"  # in the run directory of a command that continued another run
+from physicsrl.config import TrainConfig, typed
+from physicsrl.envs.factory import make_env_for_rank
+from physicsrl.envs.layout import environments
+from physicsrl.launch import output_dir
 
 
 def train(cfg) -> None:
-    """Every rank: build the env; the leader trains and reports, followers serve."""
+    """Every rank: build the env; the leader trains and reports (:mod:`physicsrl.learner`),
+    the other ranks serve. Only the ranks that hold a TorchRL env (world rank 0 and the
+    other group leaders) import torch: a rank that serves only its group leader's simulator
+    calls builds the task alone (:func:`~physicsrl.envs.factory.make_env_for_rank`)."""
     config: TrainConfig = typed(cfg)
     comm = MPI.COMM_WORLD
     leader = comm.rank == 0
-    torch.set_num_threads(config.threads)
-    torch.manual_seed(config.seed)
+    if comm.rank % config.mpi.ranks_per_env == 0 or cfg.env.get("factory"):
+        import torch  # this rank holds an env (every rank, for an env.factory's)
+
+        torch.set_num_threads(config.threads)
+        torch.manual_seed(config.seed)
     np.random.seed(config.seed)
     random.seed(config.seed)
     run_dir = output_dir()
@@ -61,13 +51,10 @@ def train(cfg) -> None:
     # where to continue from, and whether checkpoints can be written: the leader decides
     resume, error = None, None
     if leader:
+        from physicsrl import learner  # torch and TorchRL: the learner's rank only
+
         try:
-            if config.resume not in (None, False):
-                resume_dir = find_run(resume_request(str(config.resume), run_dir), run_dir.parent)
-                resume = Checkpoints(resume_dir / "checkpoints", 1).newest_readable()
-                check_same_task(read(resume, ["extra"])["extra"].get("config", {}), as_dict(config))
-            log_dir = run_dir if resume is None else resume.parent.parent
-            Checkpoints(log_dir / "checkpoints", config.checkpoint.keep).check_writable()
+            resume = learner.resume_point(config, run_dir)
         except (OSError, ValueError) as problem:
             error = str(problem)
     resume, error = comm.bcast((resume, error), root=0)
@@ -80,198 +67,9 @@ def train(cfg) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
     stopped = None
-    make_env = lambda coordinator: builders.make_env(cfg, coordinator)  # noqa: E731
+    make_env = lambda coordinator: make_env_for_rank(cfg, coordinator)  # noqa: E731
     with environments(make_env, config.mpi.ranks_per_env, seed=config.seed) as env:
         if env is not None:  # world rank 0: the learner
-            stopped = train_on_leader(config, env, run_dir, resume)
+            stopped = learner.train_on_leader(config, env, run_dir, resume)
     if leader and stopped:
         raise SystemExit(130 if "SIGINT" in stopped else 143 if "SIGTERM" in stopped else 1)
-
-
-def resume_request(resume: str, run_dir: Path) -> str:
-    """What to resume (:func:`~physicsrl.run_directory.find_run`'s ``resume``): in a sweep, each
-    job its own run directory; ValueError for one run directory named for every job."""
-    if not sweeping():
-        return resume
-    check_sweep_resume(resume)
-    return str(run_dir)
-
-
-def task_of(env) -> Task | type[Task] | None:
-    """The :class:`~physicsrl.envs.task.Task` behind ``env`` (group 0's for many environments,
-    the task's class for replicas), if it has one: its hooks name the baselines, action counts
-    and score lines."""
-    # not getattr: EnvBase.__getattr__ searches further
-    task = env.task if isinstance(env, Members) else vars(env).get("task")
-    is_class = isinstance(task, type) and issubclass(task, Task)
-    return task if is_class or isinstance(task, Task) else None
-
-
-def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None = None) -> Dojo:
-    """The Dojo of ``config`` for ``env`` (leader only)."""
-    task, environments = task_of(env), n_environments(env)
-    return Dojo(
-        builders.make_q_network(env, config.agent.network),
-        env,
-        config,
-        log_dir=log_dir,
-        checkpoint_extra={"config": as_dict(config), "environments": environments},
-        coordinator=coordinator,
-        action_counts=task.action_counts if task else {},
-        environments=environments,
-        cores=MPI.COMM_WORLD.size,
-    )
-
-
-def baselines(env, config: TrainConfig, seeds) -> dict:
-    """Display name -> policy: the task's baseline policies (none for envs without a task)."""
-    task = task_of(env)
-    return task.baselines(env, list(seeds), config.seed) if task else {}
-
-
-def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None) -> str | None:
-    """Train (continuing from the checkpoint ``resume``, in its run directory), print the
-    summary, write ``summary.json``; return the stop reason, if any."""
-    task = task_of(env)
-    coordinator = task.coordinator if isinstance(task, Task) else None  # its time is logged
-    ranks, per_env = MPI.COMM_WORLD.size, config.mpi.ranks_per_env
-    log_dir = run_dir if resume is None else resume.parent.parent
-    groups, n = ranks // per_env, n_environments(env)
-    plural = lambda count: "s" if count > 1 else ""  # noqa: E731
-    layout = f"{groups} environment{plural(groups)} of {per_env} rank{plural(per_env)}"
-    if n != groups:  # replicas: a group is a batch of them
-        layout = f"{n} environments ({groups} group{plural(groups)} of {n // groups} replicas)"
-    log.info(
-        "%s (%d rank%s); run directory %s; training to iteration %d; %s",
-        layout,
-        ranks,
-        plural(ranks),
-        log_dir,
-        config.iterations,
-        provenance(),
-    )
-    if log_dir != run_dir:  # the resumed run keeps its own log; this command's says where
-        handler = logging.FileHandler(log_dir / "train.log")
-        handler.setFormatter(
-            logging.Formatter("[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
-        )
-        logging.getLogger().addHandler(handler)
-    dojo = make_dojo(config, env, coordinator, log_dir)
-    if resume is not None:
-        extra = dojo.load_checkpoint(resume)
-        check_environments(extra.get("environments", 1), n_environments(env))
-        warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
-    if log_dir != run_dir:
-        (run_dir / RESUMED).write_text(
-            f"this command resumed {log_dir} from {resume.name}: its checkpoints, events, "
-            f"evaluations and summary are written there\n"
-        )
-    started = time.perf_counter()
-    try:
-        summary = dojo.train(config.iterations)
-    except (NonFiniteTraining, ResetDiverged) as error:
-        print(f"error: {error}", file=sys.stderr, flush=True)
-        raise SystemExit(1) from None
-    summary["wall_s"] = time.perf_counter() - started  # this command's (total_s: the run's)
-    summary["resumed_from"] = None if resume is None else str(resume)
-    summary["ranks"], summary["environments"] = ranks, n_environments(env)  # for core-hours
-    table, stopped = [], dojo.stopped
-    if dojo.history:  # a stop request skips the baselines: it should end quickly
-        counters = ("iteration", "frames", "wall_s")
-        greedy = {k: v for k, v in dojo.history[-1].items() if k not in counters}
-        table = [{"policy": "greedy DQN", **greedy}]
-        if config.eval.baselines and not stopped:
-            try:
-                policies = baselines(env, config, config.eval.seeds)
-                table += compare(env, policies, config.eval.seeds, dojo.action_counts)[1]
-            except KeyboardInterrupt:  # Ctrl-C after training: the summary, without them
-                stopped = summary["baselines"] = "received SIGINT"
-    report = format_summary(summary, table, log_dir, task_of(env))
-    print(report, flush=True)
-    (log_dir / "summary.txt").write_text(report + "\n")
-    (log_dir / "summary.json").write_text(
-        json.dumps({"summary": summary, "table": table}, indent=2, default=str)
-    )
-    return stopped
-
-
-def n_environments(env) -> int:
-    """N: the environments behind ``env`` (a batch's members, else 1)."""
-    return env.batch_size[0] if isinstance(env, Members) else 1
-
-
-def check_environments(before: int, n_envs: int) -> None:
-    """Exit with one line unless the checkpoint's run had ``n_envs`` environments: their
-    episode generators are part of the exact resume."""
-    if before != n_envs:
-        print(
-            f"error: the checkpoint's run had {before} environment(s), this job has {n_envs} "
-            "(mpi.ranks / mpi.ranks_per_env): resume with the same number",
-            file=sys.stderr,
-        )
-        raise SystemExit(2)
-
-
-TASK_KEYS = ("env.name", "env.module", "observation.name", "reward.name")
-"""What a resumed run may not change: its buffer and network are the task's."""
-
-
-def check_same_task(old: dict, new: dict) -> None:
-    """ValueError naming the first of :data:`TASK_KEYS` in which the config ``new`` of a resume
-    differs from its checkpoint's ``old`` (other settings may change: a warning each)."""
-    for key in TASK_KEYS:
-        section, name = key.split(".")
-        before, after = old.get(section, {}).get(name), new.get(section, {}).get(name)
-        if before != after:
-            raise ValueError(
-                f"resume: {key}={after} where the checkpoint's run has {before}: a resume goes "
-                "on with the run's task (give its +experiment or env, observation and reward)"
-            )
-
-
-def warn_differences(old: dict, new: dict, prefix: str = "") -> None:
-    """Log the settings of a resumed run that differ from its checkpoint's."""
-    ignored = {"resume", "iterations", "mpi", "logger"}
-    for key in sorted(set(old) | set(new)):
-        name = f"{prefix}{key}"
-        if not prefix and key in ignored:
-            continue
-        a, b = old.get(key), new.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            warn_differences(a, b, f"{name}.")
-        elif a != b:
-            log.warning("resumed with %s = %r (the checkpoint's run had %r)", name, b, a)
-
-
-def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task | None) -> str:
-    times = ", ".join(f"{k} {v:.1f}s" for k, v in summary["time_s"].items())
-    took = f"{summary['total_s']:.1f}s"  # the run's, resumes included, as the times below
-    if summary["resumed_from"]:
-        took += f" ({summary['wall_s']:.1f}s of them since resuming)"
-    lines = [
-        f"trained {summary['iteration']} iterations, {summary['frames']} env steps, "
-        f"{summary['episodes']} episodes, {summary['updates']} updates in {took} "
-        f"({summary['env_steps_per_s']:.1f} env steps/s while simulating)",
-        f"time: {times}",
-    ]
-    if summary.get("simulated"):
-        phases = ", ".join(
-            f"{phase} {seconds:.1f}s ({steps / max(seconds, 1e-9):,.0f} replica-steps/s, "
-            f"mean batch {steps / max(batch_steps, 1):.1f})"
-            for phase, (seconds, steps, batch_steps) in summary["simulated"].items()
-        )
-        lines.append(f"simulation by phase: {phases}")
-    if summary.get("stopped"):
-        lines.append(f"stopped early: {summary['stopped']} (resume with resume={log_dir})")
-    if table:
-        evaluated = summary["eval"]["iteration"]
-        lines.append(
-            f"held-out seeds, mean per episode (the greedy policy of iteration {evaluated}):"
-        )
-        lines.append(format_table(rounded(table)))
-        if summary.get("baselines"):
-            lines.append(f"baselines not run: {summary['baselines']} after training had ended")
-        if task is not None:
-            lines.extend(task.scores({row["policy"]: row["return"] for row in table}))
-    lines.append(f"run directory: {log_dir}")
-    return "\n".join(lines)

@@ -851,3 +851,21 @@ def test_a_time_step_on_which_every_reset_diverges_stops_training_with_one_line(
         "large for the scheme (lower env.model.dt or env.dt)"
     ], result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_a_rank_that_only_serves_the_simulator_imports_no_torch(tmp_path):
+    """One heat environment on 2 ranks (``mpi.ranks_per_env=2``), started by MPMD ``mpiexec``
+    so that rank 1 alone reports its imports (``PYTHONPROFILEIMPORTTIME``): the run trains and
+    prints its summary, and rank 1, which serves the leader's simulator calls, imported the
+    task and the layout but never torch, TorchRL or tensordict (it builds the task alone; the
+    leader imports them through the ``import`` statements that this report lists)."""
+    arguments = [TRAIN, "iterations=2", "collector.frames_per_batch=8", "eval.baselines=false"]
+    arguments += ["logger.progress=false", "mpi.ranks_per_env=2", f"hydra.run.dir={tmp_path}"]
+    traced = ["-env", "PYTHONPROFILEIMPORTTIME", "1"]
+    command = [str(MPIEXEC), "-n", "1", *arguments, ":", "-n", "1", *traced, *arguments]
+    result = run(command, tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.count("held-out seeds, mean per episode") == 1, result.stdout
+    imported = {line.split("|")[-1].strip() for line in result.stderr.splitlines()}
+    assert {"physicsrl.envs.heat", "physicsrl.envs.layout"} <= imported  # its job ran
+    assert not imported & {"torch", "torchrl", "tensordict"}

@@ -28,7 +28,7 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from physicsrl.envs import load_config, make_env
-from physicsrl.envs.groups import environments
+from physicsrl.envs.layout import environments
 
 FIXED_LENGTH = ["env.success_threshold=-1e30", "env.extra_waits=0", "env.snapshots.capacity=0"]
 

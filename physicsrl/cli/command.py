@@ -222,7 +222,7 @@ def main(config_name: str, task: str, check: Callable) -> None:
     validate_or_exit(config_name, overrides, check)
 
     def job(cfg) -> None:  # imports torch (~6 s): only once a job runs, after the checks
-        from physicsrl.builders import load_object
+        from physicsrl.imports import load_object
 
         load_object(task)(cfg)
 

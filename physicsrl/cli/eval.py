@@ -78,7 +78,7 @@ def evaluate(cfg) -> None:
     from physicsrl.cli.command import refuse_config
     from physicsrl.cli.train import check_run
     from physicsrl.config import typed
-    from physicsrl.envs.groups import environments
+    from physicsrl.envs.layout import environments
     from physicsrl.launch import check_backend
 
     comm = MPI.COMM_WORLD
@@ -138,9 +138,9 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     from physicsrl.envs.task import ResetDiverged
     from physicsrl.evaluation import compare
     from physicsrl.fem.output import render_series
+    from physicsrl.learner import baselines, make_dojo
     from physicsrl.render import episode_gif, record_fields
     from physicsrl.tables import format_table, rounded, write_csv
-    from physicsrl.training import baselines, make_dojo
 
     dojo = make_dojo(train_cfg, env)
     try:

@@ -13,42 +13,73 @@ leader calls ``reset``/``step``, inside ``with coordinator:``. Bad settings rais
 naming the key (``env.dt must be ...``). With ``env.model.backend=torch`` (the ATP task) the env
 is :class:`~physicsrl.envs.batched.BatchedATPEnv`: ``env.replicas`` copies of the task on this
 rank alone (a group of one rank).
+
+The ranks that only serve a coordinator's leader never step the env: :func:`make_env_for_rank`
+builds there the task alone (:func:`make_task`, the same collective calls), so that they import
+no torch (``benchmarks/follower_memory.py``: their peak memory). This module imports torch only
+in :func:`make_env`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
-
-from torchrl.envs import EnvBase
+from typing import TYPE_CHECKING, Any
 
 from physicsrl.checks import build, plain
 from physicsrl.coordinated import Coordinator
-from physicsrl.envs.env import PhysicsEnv
 from physicsrl.envs.observations import OBSERVATIONS
 from physicsrl.envs.rewards import REWARDS
-from physicsrl.envs.task import TASKS
+from physicsrl.envs.task import TASKS, Task
 from physicsrl.launch import check_backend
+
+if TYPE_CHECKING:
+    from torchrl.envs import EnvBase
 
 
 def make_env(cfg: Mapping | Any, coordinator: Coordinator) -> EnvBase:
     """Build task (on this rank), observation and reward from ``cfg``; see the module docstring."""
     cfg = plain(cfg)
+    observation, reward, task_class, config = parts(cfg)
+    if getattr(getattr(config, "model", None), "backend", None) == "torch":
+        from physicsrl.envs.batched import BatchedATPEnv  # torch's time loop
+
+        check_backend("torch", coordinator.comm.size)
+        return BatchedATPEnv(config, observation, reward, seed=cfg.get("seed"))
+    from physicsrl.envs.env import PhysicsEnv  # TorchRL: on the ranks that step an env
+
+    return PhysicsEnv(task_class(coordinator, config, observation), reward, seed=cfg.get("seed"))
+
+
+def make_task(cfg: Mapping | Any, coordinator: Coordinator) -> Task:
+    """The task of :func:`make_env`'s env alone (its simulator side; no torch): what a rank that
+    only serves ``coordinator``'s leader needs. Collective as :func:`make_env` is."""
+    observation, _, task_class, config = parts(plain(cfg))
+    if getattr(getattr(config, "model", None), "backend", None) == "torch":
+        check_backend("torch", coordinator.comm.size)  # its env has no followers: refused
+    return task_class(coordinator, config, observation)
+
+
+def make_env_for_rank(cfg: Mapping | Any, coordinator: Coordinator) -> EnvBase | Task:
+    """What this rank of ``coordinator`` builds of ``cfg``'s env: the env on the leader
+    (:func:`physicsrl.builders.make_env`: ``env.factory``'s, else :func:`make_env`), the task
+    alone on the other ranks, which only serve the leader's parallel calls (:func:`make_task`);
+    an ``env.factory``'s env on every rank (its followers' needs are its own)."""
+    if coordinator.is_leader() or plain(cfg)["env"].get("factory"):
+        from physicsrl import builders  # torch and TorchRL
+
+        return builders.make_env(cfg, coordinator)
+    return make_task(cfg, coordinator)
+
+
+def parts(cfg: dict) -> tuple:
+    """(observation, reward, task class, task config) of a plain ``cfg``; ValueError naming a
+    missing group or a bad setting."""
     for group in ("env", "observation", "reward"):
         if group not in cfg:
             raise ValueError(
                 f"{group} is missing from the config (groups: env, observation, reward)"
             )
-    observation_class, settings = OBSERVATIONS.lookup(cfg["observation"])
-    observation = build(observation_class, settings, "observation")
-    reward_class, settings = REWARDS.lookup(cfg["reward"])
-    reward = build(reward_class, settings, "reward")
+    observation = build(*OBSERVATIONS.lookup(cfg["observation"]), "observation")
+    reward = build(*REWARDS.lookup(cfg["reward"]), "reward")
     task_class, settings = TASKS.lookup(cfg["env"])
-    config = build(task_class.Config, settings, "env")
-    if getattr(getattr(config, "model", None), "backend", None) == "torch":
-        from physicsrl.envs.batched import BatchedATPEnv  # torch's time loop: imported on use
-
-        check_backend("torch", coordinator.comm.size)
-        return BatchedATPEnv(config, observation, reward, seed=cfg.get("seed"))
-    task = task_class(coordinator, config, observation)
-    return PhysicsEnv(task, reward, seed=cfg.get("seed"))
+    return observation, reward, task_class, build(task_class.Config, settings, "env")

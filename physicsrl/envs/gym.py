@@ -54,7 +54,7 @@ class GymnasiumView(gymnasium.Env):
 
 class GymnasiumVectorView(gymnasium.vector.VectorEnv):
     """``gymnasium.vector.VectorEnv`` adapter of the N environments that
-    :func:`~physicsrl.envs.groups.environments` gives the learner's rank: the groups of a
+    :func:`~physicsrl.envs.layout.environments` gives the learner's rank: the groups of a
     :class:`~physicsrl.envs.groups.GroupedEnv` (each one environment or a batch of replicas), a
     :class:`~physicsrl.envs.batched.BatchedATPEnv`'s replicas, or one plain env (N = 1).
 

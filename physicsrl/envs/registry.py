@@ -58,7 +58,7 @@ def import_module_of(group: str, settings: Mapping) -> None:
     module = settings.get("module")
     if module is None:
         return
-    from physicsrl.builders import import_source
+    from physicsrl.imports import import_source
 
     try:
         import_source(str(module))

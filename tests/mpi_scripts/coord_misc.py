@@ -7,7 +7,7 @@ import time
 from mpi4py import MPI
 
 from physicsrl.coordinated import Coordinated, Coordinator, SequenceDivergence, parallel
-from physicsrl.envs.groups import environments
+from physicsrl.envs.layout import environments
 
 comm = MPI.COMM_WORLD
 case = sys.argv[1]

@@ -14,8 +14,8 @@ from torchrl.envs.utils import check_env_specs
 
 from physicsrl.coordinated import Coordinator, abort_on_error
 from physicsrl.envs import load_config, make_env
-from physicsrl.envs.groups import environments
 from physicsrl.envs.gym import GymnasiumVectorView
+from physicsrl.envs.layout import environments
 from physicsrl.envs.members import member_seed, spread_episodes
 
 SEED, STEPS, EVAL_SEEDS = 7, 14, [100, 101, 102]

@@ -9,7 +9,7 @@ import torch
 
 from physicsrl.coordinated import abort_on_error
 from physicsrl.envs import load_config, make_env
-from physicsrl.envs.groups import environments
+from physicsrl.envs.layout import environments
 
 mode, ranks_per_env = sys.argv[1], int(sys.argv[2])
 cfg = load_config("heat", "quadrants", "heat_stop", ["env.mesh.cells=8"])
