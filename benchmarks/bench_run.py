@@ -48,6 +48,11 @@ def save_results(name: str, rows: list[dict], figure, lines: list[str]) -> None:
         writer.writerows(rows)
     figure.tight_layout()
     figure.savefig(RESULTS / f"{name}.png", dpi=120)
+    save_summary(name, lines)
+
+
+def save_summary(name: str, lines: list[str]) -> None:
+    """Write results/NAME.txt (the command, then ``lines``) and print it."""
     command = shlex.join(["python", *sys.argv])
     summary = "\n".join([f"command: {command}", *lines])
     (RESULTS / f"{name}.txt").write_text(summary + "\n")

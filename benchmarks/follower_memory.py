@@ -20,13 +20,11 @@ it reads the rank's own peak resident memory (``ru_maxrss`` of its child):
 from __future__ import annotations
 
 import resource
-import shlex
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-RESULTS = Path(__file__).parent / "results" / "follower_memory.txt"
 BIN = Path(sys.executable).parent
 TRAIN = ["iterations=3", "logger.progress=false", "eval.baselines=false", "mpi.ranks_per_env=2"]
 CASES = {"physicsrl": [], "baseline (env.factory)": [f"+env.factory={__file__}:whole_env"]}
@@ -67,8 +65,9 @@ def main() -> None:
         Path(sys.argv[2]).write_text(str(child_peak_mb(sys.argv[3:])))
         return
     floor = child_peak_mb([sys.executable, "-c", "import physicsrl.envs"])
-    lines = [f"# {shlex.join(['python', 'benchmarks/follower_memory.py', *sys.argv[1:]])}"]
-    lines.append("case                    learner peak (MB)  follower peak (MB)  follower / floor")
+    from bench_run import save_summary  # here: whole_env is loaded by physicsrl-train too
+
+    lines = ["case                    learner peak (MB)  follower peak (MB)  follower / floor"]
     peaks = {}
     with tempfile.TemporaryDirectory() as scratch:
         for number, (case, extra) in enumerate(CASES.items()):
@@ -80,8 +79,7 @@ def main() -> None:
     ratio = peaks["physicsrl"][1] / peaks["baseline (env.factory)"][1]
     met = "goal met" if ratio <= 0.5 else "goal MISSED"
     lines.append(f"follower / baseline follower = {ratio:.2f} (goal <= 0.5): {met}")
-    RESULTS.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    save_summary("follower_memory", lines)
 
 
 if __name__ == "__main__":

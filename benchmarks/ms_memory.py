@@ -15,12 +15,11 @@ from __future__ import annotations
 
 import argparse
 import resource
-import shlex
 import subprocess
 import sys
-from pathlib import Path
 
-RESULTS = Path(__file__).parent / "results" / "ms_memory.txt"
+from bench_run import save_summary  # benchmarks/ (the script's directory)
+
 SCHEMES = ("implicit", "explicit")
 
 
@@ -60,8 +59,7 @@ def main() -> None:
         return
     from physicsrl.cli.train import MESH_BYTES_PER_CELL
 
-    lines = [f"# {shlex.join(['python', 'benchmarks/ms_memory.py', *sys.argv[1:]])}"]
-    lines.append("cells per side  scheme    peak bytes per cell  estimate  measured / estimate")
+    lines = ["cells per side  scheme    peak bytes per cell  estimate  measured / estimate"]
     ratios = []
     for cells in args.cells:
         for scheme in SCHEMES:
@@ -75,8 +73,7 @@ def main() -> None:
             )
     met = "goal met" if max(ratios) <= 1 else "goal MISSED"
     lines.append(f"the estimate covers every peak (measured / estimate <= 1): {met}")
-    RESULTS.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    save_summary("ms_memory", lines)
 
 
 if __name__ == "__main__":
