@@ -625,7 +625,8 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     draws. Their means barely move (the bar 374.70, 85%; the single shock 330.05, 70%; G2
     347.50, 75%, 1.80 shocks) but for the third schedule's (292.65, 65%: it loses draw 06), and
     5 of the 80 episodes change outcome: the bar's on draws 06 and 10, G2's on 10 and 14 and
-    the third schedule's on 06 (experiments/results/README.md)."""
+    the third schedule's on 06 (experiments/results/README.md). The bar's episode on draw 10
+    at 4000 x 4000 (``atp_resolved_timing_4000/``) is its 2000 x 2000 row."""
     from physicsrl.tables import mean_metrics, read_per_policy
 
     results = ROOT / "experiments" / "results"
@@ -688,6 +689,17 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
         (292.65, 0.65, 2.0),
         (347.5, 0.75, 1.8),
     ]
+    # a third grid on draw 10 (the bar failed it at 1000, ended it at 2000): as at 2000
+    finest = results / "atp_resolved_timing_4000" / "atp_resolved_timing_convergence.csv"
+    [row_4000] = csv.DictReader(finest.open())
+    [row_2000] = [r for r in rows if r["policy"] == "every5from4" and r["seed"] == row_4000["seed"]]
+    keys = ("policy", "seed", "return", "success", "shocks", "length")
+    assert [row_4000[k] for k in keys] == [row_2000[k] for k in keys]
+    assert (row_4000["cells"], row_4000["seed"], row_4000["return"]) == (
+        "4000",
+        "1000000010",
+        "447.0",
+    )
 
 
 def shock_timing():
