@@ -26,7 +26,7 @@ import numpy as np
 from mpi4py import MPI
 
 from physicsrl.config import TrainConfig, typed
-from physicsrl.envs.factory import make_env_for_rank
+from physicsrl.envs.factory import builds_env, make_env_for_rank
 from physicsrl.envs.layout import environments
 from physicsrl.launch import output_dir
 
@@ -39,8 +39,8 @@ def train(cfg) -> None:
     config: TrainConfig = typed(cfg)
     comm = MPI.COMM_WORLD
     leader = comm.rank == 0
-    if comm.rank % config.mpi.ranks_per_env == 0 or cfg.env.get("factory"):
-        import torch  # this rank holds an env (every rank, for an env.factory's)
+    if builds_env(cfg, leader=comm.rank % config.mpi.ranks_per_env == 0):  # leads its group
+        import torch  # this rank holds an env
 
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)

@@ -221,7 +221,7 @@ def main(config_name: str, task: str, check: Callable) -> None:
     register()
     validate_or_exit(config_name, overrides, check)
 
-    def job(cfg) -> None:  # imports torch (~6 s): only once a job runs, after the checks
+    def job(cfg) -> None:  # the job's code (torch where a rank holds an env): after the checks
         from physicsrl.imports import load_object
 
         load_object(task)(cfg)

@@ -151,11 +151,11 @@ def evaluate_on_leader(cfg, train_cfg, env, state: dict, path: Path, recorder=No
     seeds = cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds
     seeds = held_out_seeds(seeds) if isinstance(seeds, int) else [int(s) for s in seeds]
     policies = {"greedy DQN": dojo.q_network}
-    if cfg.baselines:
-        policies.update(baselines(env, train_cfg, seeds))
-    try:
+    try:  # the first reset (a baseline's search runs episodes too) finds the overrides' numerics
+        if cfg.baselines:
+            policies.update(baselines(env, train_cfg, seeds))
         per_seed, means = compare(env, policies, seeds, dojo.action_counts)
-    except ResetDiverged as error:  # found by the first reset: the overrides' numerics
+    except ResetDiverged as error:
         refuse_config(f"overrides: {error}")
     directory = output_dir()
     write_csv(directory / "eval.csv", per_seed)

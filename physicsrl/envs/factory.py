@@ -64,11 +64,17 @@ def make_env_for_rank(cfg: Mapping | Any, coordinator: Coordinator) -> EnvBase |
     (:func:`physicsrl.builders.make_env`: ``env.factory``'s, else :func:`make_env`), the task
     alone on the other ranks, which only serve the leader's parallel calls (:func:`make_task`);
     an ``env.factory``'s env on every rank (its followers' needs are its own)."""
-    if coordinator.is_leader() or plain(cfg)["env"].get("factory"):
+    if builds_env(cfg, coordinator.is_leader()):
         from physicsrl import builders  # torch and TorchRL
 
         return builders.make_env(cfg, coordinator)
     return make_task(cfg, coordinator)
+
+
+def builds_env(cfg: Mapping | Any, leader: bool) -> bool:
+    """Whether :func:`make_env_for_rank` builds the whole env on a rank that leads its
+    coordinator (``leader``) or not: on the leader, and on every rank for ``env.factory``."""
+    return leader or bool(plain(cfg)["env"].get("factory"))
 
 
 def parts(cfg: dict) -> tuple:

@@ -25,6 +25,7 @@ from torchrl.envs import EnvBase
 from physicsrl.coordinated import wait_for
 from physicsrl.envs.layout import Layout
 from physicsrl.envs.members import Members, OneMember, as_members
+from physicsrl.envs.task import ResetDiverged
 
 __all__ = ["GroupedEnv", "serve"]
 
@@ -63,7 +64,10 @@ class _Group:
         if self.members is None:
             with timeit("groups/wait"):  # the remote group's work, not the learner's own cost
                 self.leaders.Probe(source=self.index, tag=_REPLY)
-            return self.leaders.recv(source=self.index, tag=_REPLY)
+            reply = self.leaders.recv(source=self.index, tag=_REPLY)
+            if isinstance(reply, ResetDiverged):  # raised here, as the local group's would be
+                raise reply
+            return reply
         return _run(self.members, command, argument)
 
 
@@ -81,7 +85,11 @@ def serve(env: EnvBase, leaders: MPI.Comm, spin_s: float = 0.05, max_sleep_s: fl
         command, argument = leaders.recv(source=0, tag=_REQUEST)
         if command == _CLOSE:
             return int(argument)
-        leaders.send(_run(members, command, argument), dest=0, tag=_REPLY)
+        try:
+            reply = _run(members, command, argument)
+        except ResetDiverged as error:  # the learner's to report (one line), not a fault here
+            reply = error
+        leaders.send(reply, dest=0, tag=_REPLY)
 
 
 class GroupedEnv(Members):

@@ -72,6 +72,10 @@ class ResetDiverged(RuntimeError):
             f"{attempts} reset draws in a row gave non-finite states{where}: the time step is "
             "likely too large for the scheme (lower env.model.dt or env.dt)"
         )
+        self.attempts, self.where = attempts, where
+
+    def __reduce__(self):  # a remote group's reaches the learner pickled
+        return type(self), (self.attempts, self.where)
 
 
 @dataclass
