@@ -398,21 +398,34 @@ def check_memory(
         ),
         **(others or {}),
     }
+    check_needs(needs, config.max_memory_gb)
+
+
+def check_needs(needs: dict[str, tuple[float, str]], max_memory_gb: float) -> None:
+    """ValueError naming the first setting of ``needs`` (setting -> (bytes, how)) that would
+    need more than ``max_memory_gb`` (10^9 bytes)."""
     for setting, (size, how) in needs.items():
-        if size > config.max_memory_gb * 1e9:
+        if size > max_memory_gb * 1e9:
             raise ValueError(
                 f"{setting} would need about {size / 1e9:.3g} GB ({how}), more than "
-                f"max_memory_gb={config.max_memory_gb:g} (raise it to allow)"
+                f"max_memory_gb={max_memory_gb:g} (raise it to allow)"
             )
+
+
+def train_default(key: str) -> Any:
+    """The default of the top-level setting ``key`` of :class:`TrainConfig`."""
+    return {f.name: f.default for f in dataclasses.fields(TrainConfig)}[key]
 
 
 def register() -> None:
     """Make the schemas known to Hydra (``conf/train.yaml`` and ``conf/eval.yaml`` use them), and
-    the resolver ``${held_out:n}``: the first ``n`` held-out seeds."""
+    the resolvers ``${held_out:n}``: the first ``n`` held-out seeds, and ``${train_default:key}``
+    (the benchmarks' ``max_memory_gb``)."""
     from hydra.core.config_store import ConfigStore
     from omegaconf import OmegaConf
 
     OmegaConf.register_new_resolver("held_out", held_out_seeds, replace=True)
+    OmegaConf.register_new_resolver("train_default", train_default, replace=True)
     store = ConfigStore.instance()
     store.store(name="train_schema", node=TrainConfig)
     store.store(name="eval_schema", node=EvalConfig)

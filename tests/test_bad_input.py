@@ -171,6 +171,16 @@ ROWS = [
     ("bench_groups", ["noop_steps=-1"], "noop_steps=-1: must be an integer >= 1"),
     ("bench_groups", ['overrides=["env.mesh.cells=-1"]'], "env.mesh.cells must be an integer"),
     ("bench_env", ['overrides=["env.nosuch=1"]'], "env.nosuch is not a setting of env"),
+    # memory (physicsrl-train's estimates, max_memory_gb)
+    ("bench_ms", ["grid.n=100000"], "grid.n=100000 would need about 3e+04 GB (3 simulator(s)"),
+    ("bench_ms", ["grid.n=2000", "max_memory_gb=1"], "more than max_memory_gb=1"),
+    ("bench_ms", ["max_memory_gb=nan"], "max_memory_gb=nan: must be a finite number"),
+    ("bench_env", ['overrides=["env.mesh.cells=100000"]'], "env.mesh.cells=100000 would need"),
+    (
+        "bench_groups",
+        ['overrides=["env.model.backend=torch","env.mesh.cells=1000","env.replicas=1000"]'],
+        "env.replicas=1000 would need about 48.1 GB",
+    ),
     # -m sweeps: every job, before any starts
     ("train", ["-m", "iterations=-5,3"], "iterations must be an integer >= 1, got -5 (sweep job 1"),
     ("train", ["-m", "iterations=3,-5"], "got -5 (sweep job 2 of 2: iterations=-5)"),
@@ -220,6 +230,16 @@ def test_a_bad_command_line_is_one_line_naming_the_key(
     lines = err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: bad config: "), err
     assert named in lines[0], lines[0]
+
+
+def test_the_benchmarks_memory_cap_is_physicsrl_train_s():
+    from physicsrl.cli.command import compose
+    from physicsrl.config import TrainConfig
+
+    default = TrainConfig().max_memory_gb
+    for name in ("ms", "env", "groups"):
+        assert compose(f"bench_{name}", []).max_memory_gb == default
+    assert compose("bench_ms", ["max_memory_gb=64"]).max_memory_gb == 64
 
 
 def test_the_table_is_at_least_60_rows_over_every_command():

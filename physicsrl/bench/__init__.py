@@ -15,6 +15,7 @@ SETTINGS: dict[str, dict[str, tuple[type | tuple[str, ...], float | None]]] = {
         "scheme": (("implicit", "explicit", "both"), None),
         "rhs": (("compiled", "numpy", "form"), None),
         "baseline": (bool, None),
+        "max_memory_gb": (float, 0.0),
     },
     "env": {
         "seed": (int, 0),
@@ -22,6 +23,7 @@ SETTINGS: dict[str, dict[str, tuple[type | tuple[str, ...], float | None]]] = {
         "shock_every": (int, 1),
         "baseline": (bool, None),
         "baseline_decisions": (int, 1),
+        "max_memory_gb": (float, 0.0),
     },
     "groups": {
         "atp": (bool, None),
@@ -29,5 +31,6 @@ SETTINGS: dict[str, dict[str, tuple[type | tuple[str, ...], float | None]]] = {
         "decisions": (int, 1),
         "shock_every": (int, 1),
         "noop_steps": (int, 1),
+        "max_memory_gb": (float, 0.0),
     },
 }

@@ -59,9 +59,22 @@ def check_settings(cfg, settings: dict[str, tuple[type | tuple[str, ...], float 
 def check(cfg, job, name: str) -> None:
     """:func:`check_settings` of benchmark ``name``, the settings that must agree (ms: more
     steps than the first call's, which is timed apart; groups: the layout of the job's ranks
-    and no reset within the timed decisions), and the ATP task it builds from its
-    ``overrides`` (benchmarks env and groups), as ``make_env`` will read it; nothing is built."""
+    and no reset within the timed decisions), the ATP task it builds from its ``overrides``
+    (benchmarks env and groups), as ``make_env`` will read it, and the memory per rank of the
+    simulators it builds (estimated as ``physicsrl-train`` does, within ``max_memory_gb``; the
+    report's LU baseline counts as one more simulator); nothing is built."""
+    from physicsrl.cli.train import MESH_BYTES_PER_CELL, simulator_needs
+    from physicsrl.config import check_needs
+
     check_settings(cfg, SETTINGS[name])
+    needs = {}
+    if name == "ms":
+        builds = (2 if cfg.scheme == "both" else 1) + int(cfg.baseline)
+        needs[f"grid.n={cfg.grid.n}"] = (
+            builds * cfg.grid.n**2 * MESH_BYTES_PER_CELL / job.ranks,
+            f"{builds} simulator(s) of {MESH_BYTES_PER_CELL} bytes per cell, over mpi.ranks="
+            f"{job.ranks}, per rank",
+        )
     if name == "ms" and cfg.steps <= cfg.steps_per_call:
         raise ValueError(
             f"steps={cfg.steps}: must exceed steps_per_call={cfg.steps_per_call} (the first "
@@ -81,6 +94,11 @@ def check(cfg, job, name: str) -> None:
                 f"decisions={cfg.decisions}: must be at most env.max_decisions="
                 f"{env.max_decisions} (no reset within the timed steps)"
             )
+        grouped = name == "groups"
+        ranks = cfg.mpi.ranks_per_env if grouped else job.ranks
+        needs = simulator_needs(env, "mpi.ranks_per_env" if grouped else "mpi.ranks", ranks)
+    if needs:  # benchmarks that build a simulator
+        check_needs(needs, cfg.max_memory_gb)
 
 
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:

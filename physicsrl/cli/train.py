@@ -79,20 +79,32 @@ def check_run(cfg) -> None:
             f"agent.network.inputs: {unknown[0]!r} is not an observation key of the "
             f"{task.name} task (its keys: {', '.join(inputs)})"
         )
-    simulator = {}
-    if isinstance(mesh, SquareMesh):
-        ranks = config.mpi.ranks_per_env  # the mesh's share per rank (1 for replicas)
-        simulator[f"env.mesh.cells={mesh.cells}"] = (
-            mesh.cells**2 * MESH_BYTES_PER_CELL / ranks,
-            f"{MESH_BYTES_PER_CELL} bytes per cell, over mpi.ranks_per_env={ranks}, per rank",
-        )
-        if getattr(getattr(task_config, "model", None), "backend", None) == "torch":
-            replicas = task_config.replicas
-            simulator[f"env.replicas={replicas}"] = (
-                replicas * (mesh.cells + 1) ** 2 * STATE_BYTES_PER_DOF,
-                f"{STATE_BYTES_PER_DOF} bytes per replica and dof",
-            )
+    simulator = simulator_needs(task_config, "mpi.ranks_per_env", config.mpi.ranks_per_env)
     check_memory(config, inputs, task.n_actions, simulator)
+
+
+def simulator_needs(task_config, ranks_key: str, ranks: int) -> dict[str, tuple[float, str]]:
+    """The memory per rank of the simulator of a task config on a square mesh, its cells
+    shared by ``ranks`` ranks (the setting ``ranks_key``), and of its torch replicas (which run
+    on one rank each): setting -> (bytes, how), for :func:`~physicsrl.config.check_needs`."""
+    from physicsrl.envs.task import SquareMesh
+
+    mesh = getattr(task_config, "mesh", None)
+    if not isinstance(mesh, SquareMesh):
+        return {}
+    needs = {
+        f"env.mesh.cells={mesh.cells}": (
+            mesh.cells**2 * MESH_BYTES_PER_CELL / ranks,
+            f"{MESH_BYTES_PER_CELL} bytes per cell, over {ranks_key}={ranks}, per rank",
+        )
+    }
+    if getattr(getattr(task_config, "model", None), "backend", None) == "torch":
+        replicas = task_config.replicas
+        needs[f"env.replicas={replicas}"] = (
+            replicas * (mesh.cells + 1) ** 2 * STATE_BYTES_PER_DOF,
+            f"{STATE_BYTES_PER_DOF} bytes per replica and dof",
+        )
+    return needs
 
 
 def env_inputs(task, observation) -> dict[str, tuple[int, int]]:
