@@ -11,7 +11,8 @@ from pathlib import Path
 
 from torchrl.checkpoint import Checkpoint, JSONCheckpointAdapter, StateDictCheckpointAdapter
 
-from physicsrl.checkpoint import State, checkpoint_file, read
+from physicsrl.checkpoint import State, read
+from physicsrl.run_directory import checkpoint_path
 
 KEPT = {"counters": True, "extra": False, "history": False, "q_network": True}
 """The components physicsrl-eval reads; True: a state dict, False: a JSON value."""
@@ -25,7 +26,7 @@ def main() -> None:
     if args.out.exists():
         parser.error(f"{args.out} exists: name a new file")
     try:
-        source = checkpoint_file(args.run)
+        source = checkpoint_path(args.run)
     except ValueError as error:
         parser.error(str(error))
     write_policy(args.out, read(source, KEPT))

@@ -37,9 +37,7 @@ from torchrl.checkpoint import (
     StateDictCheckpointAdapter,
 )
 
-from physicsrl.run_directory import checkpoint_path
-
-__all__ = ["Checkpoints", "State", "read", "checkpoint_file", "CheckpointsError"]
+__all__ = ["Checkpoints", "State", "read", "CheckpointsError"]
 
 log = logging.getLogger("physicsrl.checkpoint")
 
@@ -152,12 +150,3 @@ def read(path: str | Path, names: Iterable[str] | None = None) -> dict:
             checkpoint.register(name, None, adapter=JSONCheckpointAdapter())
     loaded = checkpoint.load(path, map_location="cpu")
     return {name: states[name] if name in states else loaded.values.get(name) for name in names}
-
-
-def checkpoint_file(run: str | Path) -> Path:
-    """The checkpoint of ``run``: a checkpoint file itself, or a run directory's newest one
-    (ValueError naming ``run`` otherwise)."""
-    path = Path(run).expanduser()
-    if path.is_file() and not Checkpoint.is_checkpoint(path):
-        raise ValueError(f"run={run} is not a checkpoint file (a TorchRL {SUFFIX} archive)")
-    return checkpoint_path(str(run))

@@ -8,7 +8,9 @@ without torch, so that a bad run directory or ``resume=`` is refused before torc
 
 from __future__ import annotations
 
+import json
 import os
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -107,14 +109,28 @@ def latest_checkpoint(run: Path) -> Path | None:
 
 def checkpoint_path(run: str) -> Path:
     """The checkpoint file that ``run`` names: ``run`` itself if it is a file, else the newest
-    checkpoint of the run directory ``run``; ValueError naming ``run`` if it has none."""
+    checkpoint of the run directory ``run``; ValueError naming ``run`` if it has none, or if the
+    file is not a TorchRL checkpoint archive (:func:`is_checkpoint`)."""
     path = Path(run).expanduser()
     if path.is_file():
+        if not is_checkpoint(path):
+            raise ValueError(f"run={run} is not a checkpoint file (a TorchRL .torchrl archive)")
         return path
     latest = latest_checkpoint(path)
     if latest is None:
         raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
     return latest
+
+
+def is_checkpoint(path: Path) -> bool:
+    """Whether the file ``path`` is a TorchRL checkpoint archive: a ZIP file whose
+    ``manifest.json`` names the format ``torchrl.checkpoint`` (TorchRL's
+    ``Checkpoint.is_checkpoint`` for archives, without importing torch)."""
+    try:
+        with zipfile.ZipFile(path) as archive, archive.open("manifest.json") as manifest:
+            return json.load(manifest).get("format") == "torchrl.checkpoint"
+    except (OSError, KeyError, ValueError, AttributeError, zipfile.BadZipFile):
+        return False
 
 
 def find_run(resume: str, runs: Path) -> Path:

@@ -15,13 +15,14 @@ import shlex
 import shutil
 import subprocess
 import sys
+import zipfile
 from functools import partial
 
 import pytest
 import torch
 
 from physicsrl.checkpoint import Checkpoints, damage, read
-from physicsrl.run_directory import find_run
+from physicsrl.run_directory import checkpoint_path, find_run, is_checkpoint
 from tests.conftest import MPIEXEC, ROOT, together
 from tests.test_train import (
     TOY,
@@ -71,6 +72,38 @@ def test_resume_finds_the_run_with_the_newest_checkpoint_or_names_what_has_none(
         find_run(str(runs / "d"), runs)
     with pytest.raises(FileNotFoundError, match="resume=true: no run with a checkpoint under"):
         find_run("true", runs / "d")
+
+
+def test_a_checkpoint_file_is_told_without_torch_as_torchrl_tells_it(tmp_path):
+    """:func:`~physicsrl.run_directory.is_checkpoint` (``physicsrl-eval``'s check on every
+    rank, before torch loads) agrees with TorchRL's ``Checkpoint.is_checkpoint`` on an archive,
+    the same archive truncated to its first half (its manifest, at the end, is lost), a ZIP
+    without a manifest, a ZIP whose manifest names another format, a text file and an empty
+    file; ``checkpoint_path`` refuses the others in one line naming ``run``."""
+    from torchrl.checkpoint import Checkpoint, JSONCheckpointAdapter
+
+    archive = tmp_path / "ckpt.torchrl"
+    Checkpoint().register("extra", {}, adapter=JSONCheckpointAdapter()).save(
+        archive, format="archive"
+    )
+    truncated = tmp_path / "truncated.torchrl"
+    truncated.write_bytes(archive.read_bytes()[: archive.stat().st_size // 2])
+    others = {"truncated": truncated}
+    for name, members in (("bare", {"x.json": "{}"}), ("other", {"manifest.json": '{"a": 1}'})):
+        with zipfile.ZipFile(tmp_path / name, "w") as written_zip:
+            for member, text in members.items():
+                written_zip.writestr(member, text)
+        others[name] = tmp_path / name
+    others["text"] = tmp_path / "passwd"
+    others["text"].write_text("root:x:0:0\n")
+    others["empty"] = tmp_path / "empty"
+    others["empty"].write_bytes(b"")
+    assert is_checkpoint(archive) and Checkpoint.is_checkpoint(archive)
+    assert checkpoint_path(str(archive)) == archive
+    for name, path in others.items():
+        assert is_checkpoint(path) is Checkpoint.is_checkpoint(path) is False, name
+        with pytest.raises(ValueError, match=rf"run=.*{path.name} is not a checkpoint file"):
+            checkpoint_path(str(path))
 
 
 def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_run(tmp_path):

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from physicsrl.checkpoint import checkpoint_file, read
+from physicsrl.checkpoint import read
 from physicsrl.config import held_out_seeds
+from physicsrl.run_directory import checkpoint_path
 from tests.conftest import ROOT, SMALL_ATP, run_mpi
 
 TRAIN = str(Path(sys.executable).with_name("physicsrl-train"))
@@ -89,11 +90,11 @@ def test_atp_preset_trains_two_environments_on_two_ranks(tmp_path, capsys):
     assert result.stderr.count("the mesh does not resolve the front") == 1, result.stderr
     summary = json.loads((run / "summary.json").read_text())["summary"]
     assert summary["frames"] == 12 and summary["updates"] > 0
-    assert read(checkpoint_file(run), ["extra"])["extra"]["config"]["loss"]["n_steps"] == 8
+    assert read(checkpoint_path(str(run)), ["extra"])["extra"]["config"]["loss"]["n_steps"] == 8
     # experiments/store_policy.py keeps the network's weights, without the replay buffer
     stored = tmp_path / "policy.torchrl"
     run_script("store_policy.py", str(run), str(stored))
-    trained = checkpoint_file(run)
+    trained = checkpoint_path(str(run))
     assert stored.stat().st_size < trained.stat().st_size / 10
     weights, original = read(stored, ["q_network"]), read(trained, ["q_network"])
     torch.testing.assert_close(weights, original, rtol=0, atol=0)
@@ -246,7 +247,7 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
     for job, lr in (("0", 1e-3), ("1", 3e-4)):
-        optimizer = read(checkpoint_file(sweep / job), ["optimizer"])["optimizer"]
+        optimizer = read(checkpoint_path(str(sweep / job)), ["optimizer"])["optimizer"]
         assert optimizer["param_groups"][0]["lr"] == lr
     table = tmp_path / "table.csv"
     subprocess.run(
@@ -263,7 +264,7 @@ def test_local_sweep_runs_two_jobs_and_collects_one_table(tmp_path):
     resumed = train_sweep("iterations=4", "resume=true", f"hydra.sweep.dir={sweep}")
     assert resumed.returncode == 0, resumed.stderr
     for job, lr in (("0", 1e-3), ("1", 3e-4)):
-        state = read(checkpoint_file(sweep / job), ["counters", "optimizer"])
+        state = read(checkpoint_path(str(sweep / job)), ["counters", "optimizer"])
         assert state["counters"]["iteration"] == 4
         assert state["optimizer"]["param_groups"][0]["lr"] == lr
         assert not (sweep / job / "resumed.txt").exists()

@@ -56,9 +56,10 @@ def run(arguments: list[str], cwd: Path, timeout: float = 180) -> subprocess.Com
 
 
 def final_state(run_dir: Path) -> dict:
-    from physicsrl.checkpoint import checkpoint_file, read
+    from physicsrl.checkpoint import read
+    from physicsrl.run_directory import checkpoint_path
 
-    return read(checkpoint_file(run_dir))
+    return read(checkpoint_path(str(run_dir)))
 
 
 def checkpoint_name(iteration: int) -> str:
@@ -761,9 +762,10 @@ def test_an_env_brings_its_observation_and_reward_unless_chosen():
 
 
 def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
-    """``physicsrl-eval fields=true`` under 2 ranks, on the heat task with a policy that always
-    advances (3 decisions of 0.1): the VTX series read back holds u on all 81 nodes at times
-    0, 0.1, 0.2, 0.3; at t = 0 u is the drawn integer level, later u_D = 1 on the boundary,
+    """``physicsrl-eval fields=true`` under 2 ranks (two environments, and one on both ranks),
+    on the heat task with a policy that always advances (3 decisions of 0.1): the VTX series
+    read back holds u on all 81 nodes at times 0, 0.1, 0.2, 0.3; at t = 0 u is the drawn
+    integer level, later u_D = 1 on the boundary,
     and its distance from u_D decays at every step (implicit Euler); the PNG is rendered from
     the data read back; the episode's GIF has one frame per decision."""
     import numpy as np
@@ -791,29 +793,30 @@ def test_eval_writes_the_fields_of_an_episode_for_paraview(tmp_path):
         counters=State(lambda: state["counters"], None),
         extra=state["extra"],
     ).save(advance)
-    out = tmp_path / "eval"
     evaluate = [str(MPIEXEC), "-n", "2", str(BIN / "physicsrl-eval"), f"run={advance}"]
     options = ["seeds=1", "baselines=false", "curve=false", "fields=true"]  # and the GIF
-    result = run([*evaluate, *options, f"hydra.run.dir={out}"], tmp_path)
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.count("fields of seed 1000000000 (u at 4 times)") == 1, result.stdout
-
-    series = read_series(out / "fields.bp")
-    assert np.allclose(series.times, [0.0, 0.1, 0.2, 0.3], atol=1e-12)
-    u = series.values["u"]
-    assert u.shape == (4, 81) and len(np.unique(series.points, axis=0)) == 81
-    level = np.unique(u[0])
-    assert len(level) == 1 and level[0] == round(level[0]) and level[0] != 1.0
-    boundary = np.abs(series.points[:, :2]).max(axis=1) > 2 - 1e-9
-    assert boundary.sum() == 32 and np.all(u[1:, boundary] == 1.0)
-    distance = np.sqrt(((u - 1.0) ** 2).mean(axis=1))
-    assert distance[0] > 0 and np.all(np.diff(distance) < 0), distance
-    assert (out / "fields.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # the GIF of the episode: the field after the reset and after each decision but the last
-    # (the rollout ends there)
-    assert "episode of seed 1000000000: actions [1, 1, 1]" in result.stdout, result.stdout
-    frames = imageio.mimread(out / "episode.gif")
-    assert len(frames) == 3 and frames[0].ndim == 3 and frames[0].shape[-1] == 3
+    for per_env in (1, 2):  # two environments; one on both ranks (its mesh split)
+        out = tmp_path / f"eval_{per_env}"
+        layout = f"mpi.ranks_per_env={per_env}"
+        result = run([*evaluate, *options, layout, f"hydra.run.dir={out}"], tmp_path)
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert result.stdout.count("fields of seed 1000000000 (u at 4 times)") == 1, result.stdout
+        series = read_series(out / "fields.bp")
+        assert np.allclose(series.times, [0.0, 0.1, 0.2, 0.3], atol=1e-12)
+        u = series.values["u"]
+        assert u.shape == (4, 81) and len(np.unique(series.points, axis=0)) == 81
+        level = np.unique(u[0])
+        assert len(level) == 1 and level[0] == round(level[0]) and level[0] != 1.0
+        boundary = np.abs(series.points[:, :2]).max(axis=1) > 2 - 1e-9
+        assert boundary.sum() == 32 and np.all(u[1:, boundary] == 1.0)
+        distance = np.sqrt(((u - 1.0) ** 2).mean(axis=1))
+        assert distance[0] > 0 and np.all(np.diff(distance) < 0), distance
+        assert (out / "fields.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        # the GIF of the episode: the field after the reset and after each decision but the last
+        # (the rollout ends there)
+        assert "episode of seed 1000000000: actions [1, 1, 1]" in result.stdout, result.stdout
+        frames = imageio.mimread(out / "episode.gif")
+        assert len(frames) == 3 and frames[0].ndim == 3 and frames[0].shape[-1] == 3
 
 
 def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_checkpoint(tmp_path):
@@ -821,7 +824,8 @@ def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_check
     (iteration 4, the first with learning_starts frames): under 2 ranks every rank exits
     non-zero, the leader prints one line naming the iteration and what became non-finite, and
     the checkpoint of iteration 2 stays the newest, with finite weights."""
-    from physicsrl.checkpoint import checkpoint_file, read
+    from physicsrl.checkpoint import read
+    from physicsrl.run_directory import checkpoint_path
 
     run_dir = tmp_path / "run"
     result = run(command(run_dir, "optim.lr=1e30", "checkpoint.every=2"), tmp_path)
@@ -832,7 +836,7 @@ def test_a_non_finite_loss_stops_training_with_one_line_and_keeps_the_last_check
         "(the checkpoint of iteration 2 is kept)"
     ], result.stderr
     assert "Traceback" not in result.stderr
-    latest = checkpoint_file(run_dir)
+    latest = checkpoint_path(str(run_dir))
     assert latest.name == "ckpt-000000000002.torchrl"
     loss = read(latest, ["loss"])["loss"]
     assert all(torch.isfinite(v).all() for v in loss.values() if v.is_floating_point())
@@ -856,16 +860,22 @@ def test_a_time_step_on_which_every_reset_diverges_stops_training_with_one_line(
 def test_a_rank_that_only_serves_the_simulator_imports_no_torch(tmp_path):
     """One heat environment on 2 ranks (``mpi.ranks_per_env=2``), started by MPMD ``mpiexec``
     so that rank 1 alone reports its imports (``PYTHONPROFILEIMPORTTIME``): the run trains and
-    prints its summary, and rank 1, which serves the leader's simulator calls, imported the
-    task and the layout but never torch, TorchRL or tensordict (it builds the task alone; the
-    leader imports them through the ``import`` statements that this report lists)."""
-    arguments = [TRAIN, "iterations=2", "collector.frames_per_batch=8", "eval.baselines=false"]
-    arguments += ["logger.progress=false", "mpi.ranks_per_env=2", f"hydra.run.dir={tmp_path}"]
-    traced = ["-env", "PYTHONPROFILEIMPORTTIME", "1"]
-    command = [str(MPIEXEC), "-n", "1", *arguments, ":", "-n", "1", *traced, *arguments]
-    result = run(command, tmp_path)
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.count("held-out seeds, mean per episode") == 1, result.stdout
-    imported = {line.split("|")[-1].strip() for line in result.stderr.splitlines()}
-    assert {"physicsrl.envs.heat", "physicsrl.envs.layout"} <= imported  # its job ran
-    assert not imported & {"torch", "torchrl", "tensordict"}
+    prints its summary, then ``physicsrl-eval`` tables its policy, and in both rank 1, which
+    serves the leader's simulator calls, imported the task and the layout but never torch,
+    TorchRL or tensordict (it builds the task alone; the leader imports them through the
+    ``import`` statements that this report lists)."""
+    run_dir = tmp_path / "run"
+    train = [TRAIN, "iterations=2", "collector.frames_per_batch=8", "eval.baselines=false"]
+    train += ["logger.progress=false", f"hydra.run.dir={run_dir}"]
+    evaluate = [str(BIN / "physicsrl-eval"), f"run={run_dir}", "gif=false", "curve=false"]
+    evaluate += [f"hydra.run.dir={tmp_path / 'eval'}"]
+    for arguments in (train, evaluate):
+        arguments = [*arguments, "mpi.ranks_per_env=2"]
+        traced = ["-env", "PYTHONPROFILEIMPORTTIME", "1"]
+        command = [str(MPIEXEC), "-n", "1", *arguments, ":", "-n", "1", *traced, *arguments]
+        result = run(command, tmp_path)
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert result.stdout.count("held-out seeds, mean per episode") == 1, result.stdout
+        imported = {line.split("|")[-1].strip() for line in result.stderr.splitlines()}
+        assert {"physicsrl.envs.heat", "physicsrl.envs.layout"} <= imported  # its job ran
+        assert not imported & {"torch", "torchrl", "tensordict"}, arguments[0]

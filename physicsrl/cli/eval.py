@@ -2,13 +2,13 @@
 trained greedy policy beside the baselines on held-out seeds.
 
 Rebuilds the env and the Q-network from the config stored in the checkpoint (every rank builds
-the env; the leader evaluates), prints a table (return, success, shocks, episode length; one
-episode per seed), writes ``eval.csv`` (per seed) and ``eval_summary.csv`` (means) and, for the
-physics tasks, ``episode.gif``: the field after the reset and after each decision, catheter
-electrodes, shocks marked (by default of the first seed whose greedy episode succeeds); with
-``fields=true`` the fields of that episode as a VTX series for ParaView (``fields.bp``) and a PNG
-of u drawn from the series read back (``fields.png``). Files go to this command's run
-directory.
+its part of the env, as in training; the leader evaluates), prints a table (return, success,
+shocks, episode length; one episode per seed), writes ``eval.csv`` (per seed) and
+``eval_summary.csv`` (means) and, for the physics tasks, ``episode.gif``: the field after the
+reset and after each decision, catheter electrodes, shocks marked (by default of the first seed
+whose greedy episode succeeds); with ``fields=true`` the fields of that episode as a VTX series
+for ParaView (``fields.bp``) and a PNG of u drawn from the series read back (``fields.png``).
+Files go to this command's run directory.
 """
 
 from __future__ import annotations
@@ -30,10 +30,7 @@ def check(cfg, job) -> None:
     check_layout(cfg.mpi.ranks_per_env, job.ranks)
     if OmegaConf.is_missing(cfg, "run"):
         raise ValueError("run is required: run=<run directory or checkpoint file>")
-    checkpoint_path(str(cfg.run))  # a file, or a run directory with one: before TorchRL loads
-    from physicsrl.checkpoint import checkpoint_file  # TorchRL (~6 s): is the file a checkpoint
-
-    checkpoint_file(str(cfg.run))
+    checkpoint_path(str(cfg.run))  # a checkpoint file, or a run directory with one
     if cfg.fields and importlib.util.find_spec("adios2") is None:
         raise ValueError("fields=true reads the series back with adios2: pip install adios2")
     run_config({}, list(cfg.overrides))  # the keys and types; the task groups come with the run
@@ -69,22 +66,28 @@ def main() -> None:
 
 
 def evaluate(cfg) -> None:
-    """Every rank: rebuild the run's env from its stored config; the leader evaluates."""
+    """Every rank: rebuild the run's env from its stored config; the leader evaluates. As in
+    training, a rank that only serves its group leader's simulator builds the task alone
+    (:func:`~physicsrl.envs.factory.make_env_for_rank`) and imports no torch."""
     from mpi4py import MPI
     from omegaconf import OmegaConf
 
-    from physicsrl import builders
-    from physicsrl.checkpoint import checkpoint_file, read
     from physicsrl.cli.command import refuse_config
     from physicsrl.cli.train import check_run
     from physicsrl.config import typed
+    from physicsrl.envs.factory import make_env_for_rank
     from physicsrl.envs.layout import environments
     from physicsrl.launch import check_backend
+    from physicsrl.run_directory import checkpoint_path
 
     comm = MPI.COMM_WORLD
     leader = comm.rank == 0
-    path = checkpoint_file(str(cfg.run))
-    state = read(path, ["q_network", "counters", "extra"]) if leader else None
+    path = checkpoint_path(str(cfg.run))
+    state = None
+    if leader:
+        from physicsrl.checkpoint import read  # TorchRL
+
+        state = read(path, ["q_network", "counters", "extra"])
     config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
     try:  # as physicsrl-train checks its config, before anything is built
         train_cfg = run_config(config, list(cfg.overrides))
@@ -97,7 +100,7 @@ def evaluate(cfg) -> None:
     recorders = []
 
     def make_env(coordinator):
-        env = builders.make_env(train_cfg, coordinator)
+        env = make_env_for_rank(train_cfg, coordinator)
         if eval_cfg.fields:
             recorders.append(field_recorder(env, coordinator, output_dir() / "fields.bp"))
         return env
@@ -115,9 +118,11 @@ def field_recorder(env, coordinator, path: Path):
     from mpi4py import MPI
 
     from physicsrl.cli.command import refuse_config
+    from physicsrl.envs.task import Task
     from physicsrl.fem import FieldRecorder
 
-    simulator = getattr(vars(env).get("task"), "simulator", None)
+    task = env if isinstance(env, Task) else vars(env).get("task")  # a follower's: the task
+    simulator = getattr(task, "simulator", None)
     if simulator is None:
         refuse_config(
             "fields=true needs a physics task's env on the PETSc backend (env.factory's envs "
