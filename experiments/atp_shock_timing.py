@@ -2,6 +2,7 @@
 
     python experiments/atp_shock_timing.py label --draws 96     # ~2 core-hours
     python experiments/atp_shock_timing.py fit                  # a few minutes
+    python experiments/atp_shock_timing.py features             # seconds
 
 The timing variant (``+experiment=atp_timing``) on the bar's simulator (torch, float32,
 compiled). ``label``: for draws outside the held-out seeds (seeds 2000000000, 2000000001, ...),
@@ -20,6 +21,10 @@ best open-loop schedule, single shock at 0: ``atp_timing_open_loop.csv``). Write
 ``<out>/atp_shock_timing.csv`` (per seed), ``atp_shock_timing.txt`` (command, commit, choice
 and means) and prints the learning curve: the held-out success with the first 8, 16, ...
 labelled draws.
+
+``features``: the same leave-one-draw-out choice for other inputs of the estimate
+(:data:`FEATURE_SETS`: the readings alone, and with the previous decision's readings), on the
+labels alone; ``atp_shock_timing_features.txt``.
 """
 
 from __future__ import annotations
@@ -115,6 +120,43 @@ def features(observations: np.ndarray) -> np.ndarray:
     draws, decisions, _ = observations.shape
     step = np.broadcast_to(np.arange(decisions, dtype=float)[None, :, None], (draws, decisions, 1))
     return np.concatenate([observations, step], -1)
+
+
+def previous(readings: np.ndarray) -> np.ndarray:
+    """(draws, decisions, readings): each decision's previous decision's readings (decision 0:
+    its own; a policy sees them before its first shock too)."""
+    return np.concatenate([readings[:, :1], readings[:, :-1]], 1)
+
+
+FEATURE_SETS = {
+    "readings": lambda readings, step: readings,
+    "readings, decision (the reference's)": lambda readings, step: np.concatenate(
+        [readings, step], -1
+    ),
+    "readings, previous decision's readings, decision": lambda readings, step: np.concatenate(
+        [readings, previous(readings), step], -1
+    ),
+    "readings, their change since the previous decision, decision": lambda readings, step: (
+        np.concatenate([readings, readings - previous(readings), step], -1)
+    ),
+}
+"""Inputs of the k-NN estimate compared by ``features``: does the catheter's recent past (a
+policy with stacked frames) tell the window better than its present?"""
+
+
+def compare_features(out: Path) -> None:
+    """The leave-one-draw-out success of the shock-once policy for each of
+    :data:`FEATURE_SETS`, on the labelled draws alone (no episodes run), into
+    ``<out>/atp_shock_timing_features.txt``."""
+    _, x, y, never = load_labels(out)
+    readings, step = x[..., :-1], x[..., -1:]
+    lines = [f"{shlex.join(['python', *sys.argv])}", provenance()]
+    lines.append(f"{len(x)} labelled draws; hindsight best single shock: {y.max(1).mean():.1%}")
+    for name, inputs in FEATURE_SETS.items():
+        k, theta, success = choose(inputs(readings, step), y, never)
+        lines.append(f"{name}: {success:.1%} (neighbours {k}, theta {theta})")
+        print(lines[-1], flush=True)
+    (out / "atp_shock_timing_features.txt").write_text("\n".join(lines) + "\n")
 
 
 class Neighbours:
@@ -215,7 +257,7 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=("label", "fit"))
+    parser.add_argument("stage", choices=("label", "fit", "features"))
     parser.add_argument("--draws", type=int, default=96)
     parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit)")
     parser.add_argument("--replicas", type=int, default=100)
@@ -224,6 +266,8 @@ def main() -> None:
     args = parser.parse_intermixed_args()
     if args.stage == "label":
         label(args.draws, args.replicas, args.out, args.overrides)
+    elif args.stage == "features":
+        compare_features(args.out)
     else:
         fit(args.out, args.seeds, args.replicas, args.overrides)
 

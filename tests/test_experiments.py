@@ -707,6 +707,12 @@ def shock_timing():
     return runpy.run_path(str(ROOT / "experiments" / "atp_shock_timing.py"))
 
 
+def test_previous_readings_are_those_of_the_decision_before():
+    readings = np.arange(12.0).reshape(2, 3, 2)  # (draws, decisions, readings)
+    previous = shock_timing()["previous"](readings)
+    assert (previous[:, 1:] == readings[:, :-1]).all() and (previous[:, 0] == readings[:, 0]).all()
+
+
 def test_phase_drift_finds_the_shift_of_a_late_rotation():
     """``atp_phase_drift.shifts`` on readings of a rotation of period 250 that runs late on the
     coarse grid by 3 + 0.02 t time units (a 2% slower rotation): each window's shift is that
@@ -821,6 +827,10 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     assert all(float(r["shocks"]) <= 1 for r in rows)
     record = (tmp_path / "atp_shock_timing.txt").read_text()
     assert "commit" in record and "4 labelled draws" in record
+    run_script("atp_shock_timing.py", "features", *arguments)  # the labels alone
+    lines = (tmp_path / "atp_shock_timing_features.txt").read_text().splitlines()
+    assert "features" in lines[0] and "commit" in lines[1] and "4 labelled draws" in lines[2]
+    assert [line.split(":")[0] for line in lines[3:]] == list(shock_timing()["FEATURE_SETS"])
     # on 2 ranks: the same policy and episodes, the follower's environment serving the leader
     (tmp_path / "atp_shock_timing.csv").rename(tmp_path / "one_rank.csv")
     script = str(ROOT / "experiments" / "atp_shock_timing.py")
