@@ -61,8 +61,9 @@ def check(cfg, job, name: str) -> None:
     steps than the first call's, which is timed apart; groups: the layout of the job's ranks
     and no reset within the timed decisions), the ATP task it builds from its ``overrides``
     (benchmarks env and groups), as ``make_env`` will read it, and the memory per rank of the
-    simulators it builds (estimated as ``physicsrl-train`` does, within ``max_memory_gb``; the
-    report's LU baseline counts as one more simulator); nothing is built."""
+    simulators it builds, within ``max_memory_gb``, as ``physicsrl-train`` estimates it (ms:
+    each simulator it keeps, the report's LU baseline counted as one more; env and groups: the
+    task's); nothing is built."""
     from physicsrl.cli.train import MESH_BYTES_PER_CELL, simulator_needs
     from physicsrl.config import check_needs
 
