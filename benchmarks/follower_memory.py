@@ -2,8 +2,9 @@
 when it builds the whole TorchRL env (the baseline) and beside a floor.
 
 One ``physicsrl-train`` job of 2 ranks forming one environment (``mpi.ranks_per_env=2``, the
-heat task, 3 iterations) per case, each rank started by this script (MPMD ``mpiexec``) so that
-it reads the rank's own peak resident memory (``ru_maxrss`` of its child):
+heat task, 3 iterations) per case, then one ``physicsrl-eval`` job of the run it trained, laid
+out alike (2 held-out seeds); each rank started by this script (MPMD ``mpiexec``) so that it
+reads the rank's own peak resident memory (``ru_maxrss`` of its child):
 
 - physicsrl: the built-in task; the follower builds the task alone and imports no torch
   (:func:`physicsrl.envs.factory.make_env_for_rank`);
@@ -11,10 +12,11 @@ it reads the rank's own peak resident memory (``ru_maxrss`` of its child):
   builds whole, as every follower did before;
 - floor: a process that imports the simulator side (``physicsrl.envs``) and nothing else.
 
-``goal met`` when the follower's peak is at most half the baseline follower's. Writes
+``goal met`` when the follower's peak is at most half the baseline follower's, in training and
+in evaluation. Writes
 ``benchmarks/results/follower_memory.txt`` (command, table).
 
-    python benchmarks/follower_memory.py      # about a minute
+    python benchmarks/follower_memory.py      # about two minutes
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ import tempfile
 from pathlib import Path
 
 BIN = Path(sys.executable).parent
-TRAIN = ["iterations=3", "logger.progress=false", "eval.baselines=false", "mpi.ranks_per_env=2"]
+LAYOUT = "mpi.ranks_per_env=2"
+TRAIN = ["iterations=3", "logger.progress=false", "eval.baselines=false", LAYOUT]
+EVAL = ["seeds=2", "baselines=false", "gif=false", "curve=false", LAYOUT]
 CASES = {"physicsrl": [], "baseline (env.factory)": [f"+env.factory={__file__}:whole_env"]}
 
 
@@ -47,15 +51,15 @@ def child_peak_mb(command: list[str]) -> float:
     return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024  # Linux: kB
 
 
-def job_peaks(extra: list[str], directory: Path) -> list[float]:
-    """Peak MB of rank 0 (the learner) and rank 1 (its follower) of one training job."""
-    arguments = [*TRAIN, *extra, f"hydra.run.dir={directory}"]
+def job_peaks(command: list[str], directory: Path) -> list[float]:
+    """Peak MB of rank 0 (the leader) and rank 1 (its follower) of one job of the physicsrl
+    ``command`` (its name in the environment's ``bin`` and its arguments), in ``directory``."""
+    command = [str(BIN / command[0]), *command[1:], f"hydra.run.dir={directory}"]
     ranks = []
     for rank in (0, 1):
         out = directory.parent / f"{directory.name}_rank{rank}.txt"
         ranks += [":"] * (rank > 0)
-        ranks += ["-n", "1", sys.executable, __file__, "--peak", str(out)]
-        ranks += [str(BIN / "physicsrl-train"), *arguments]
+        ranks += ["-n", "1", sys.executable, __file__, "--peak", str(out), *command]
     subprocess.run([str(BIN / "mpiexec"), *ranks], check=True)
     return [float((directory.parent / f"{directory.name}_rank{r}.txt").read_text()) for r in (0, 1)]
 
@@ -67,18 +71,22 @@ def main() -> None:
     floor = child_peak_mb([sys.executable, "-c", "import physicsrl.envs"])
     from bench_run import save_summary  # here: whole_env is loaded by physicsrl-train too
 
-    lines = ["case                    learner peak (MB)  follower peak (MB)  follower / floor"]
+    lines = [f"{'case':<29s} leader peak (MB)  follower peak (MB)  follower / floor"]
     peaks = {}
     with tempfile.TemporaryDirectory() as scratch:
         for number, (case, extra) in enumerate(CASES.items()):
-            peaks[case] = job_peaks(extra, Path(scratch) / f"run{number}")
-            learner, follower = peaks[case]
-            ratio = follower / floor
-            lines.append(f"{case:<23s} {learner:>17.0f}  {follower:>18.0f}  {ratio:>16.2f}")
-    lines.append(f"{'floor (import envs)':<23s} {'':>17s}  {floor:>18.0f}  {1:>16.2f}")
-    ratio = peaks["physicsrl"][1] / peaks["baseline (env.factory)"][1]
-    met = "goal met" if ratio <= 0.5 else "goal MISSED"
-    lines.append(f"follower / baseline follower = {ratio:.2f} (goal <= 0.5): {met}")
+            run = Path(scratch) / f"run{number}"
+            peaks[case] = job_peaks(["physicsrl-train", *TRAIN, *extra], run)
+            evaluation = ["physicsrl-eval", f"run={run}", *EVAL]
+            peaks[f"{case}, eval"] = job_peaks(evaluation, run / "eval")
+    for case, (leader, follower) in sorted(peaks.items(), key=lambda item: "eval" in item[0]):
+        lines.append(f"{case:<29s} {leader:>16.0f}  {follower:>18.0f}  {follower / floor:>16.2f}")
+    lines.append(f"{'floor (import envs)':<29s} {'':>16s}  {floor:>18.0f}  {1:>16.2f}")
+    for job in ("", ", eval"):
+        ratio = peaks[f"physicsrl{job}"][1] / peaks[f"baseline (env.factory){job}"][1]
+        met = "goal met" if ratio <= 0.5 else "goal MISSED"
+        name = "physicsrl-eval" if job else "physicsrl-train"
+        lines.append(f"{name}: follower / baseline follower = {ratio:.2f} (goal <= 0.5): {met}")
     save_summary("follower_memory", lines)
 
 
