@@ -71,22 +71,22 @@ def main() -> None:
     floor = child_peak_mb([sys.executable, "-c", "import physicsrl.envs"])
     from bench_run import save_summary  # here: whole_env is loaded by physicsrl-train too
 
-    lines = [f"{'case':<29s} leader peak (MB)  follower peak (MB)  follower / floor"]
-    peaks = {}
+    lines = [f"{'command, case':<40s} leader peak (MB)  follower peak (MB)  follower / floor"]
+    peaks = {}  # (command, case) -> (leader MB, follower MB)
     with tempfile.TemporaryDirectory() as scratch:
         for number, (case, extra) in enumerate(CASES.items()):
             run = Path(scratch) / f"run{number}"
-            peaks[case] = job_peaks(["physicsrl-train", *TRAIN, *extra], run)
+            peaks["physicsrl-train", case] = job_peaks(["physicsrl-train", *TRAIN, *extra], run)
             evaluation = ["physicsrl-eval", f"run={run}", *EVAL]
-            peaks[f"{case}, eval"] = job_peaks(evaluation, run / "eval")
-    for case, (leader, follower) in sorted(peaks.items(), key=lambda item: "eval" in item[0]):
-        lines.append(f"{case:<29s} {leader:>16.0f}  {follower:>18.0f}  {follower / floor:>16.2f}")
-    lines.append(f"{'floor (import envs)':<29s} {'':>16s}  {floor:>18.0f}  {1:>16.2f}")
-    for job in ("", ", eval"):
-        ratio = peaks[f"physicsrl{job}"][1] / peaks[f"baseline (env.factory){job}"][1]
+            peaks["physicsrl-eval", case] = job_peaks(evaluation, run / "eval")
+    for (command, case), (leader, follower) in sorted(peaks.items(), reverse=True):
+        name = f"{command}, {case}"
+        lines.append(f"{name:<40s} {leader:>16.0f}  {follower:>18.0f}  {follower / floor:>16.2f}")
+    lines.append(f"{'floor (import envs)':<40s} {'':>16s}  {floor:>18.0f}  {1:>16.2f}")
+    for command in ("physicsrl-train", "physicsrl-eval"):
+        ratio = peaks[command, "physicsrl"][1] / peaks[command, "baseline (env.factory)"][1]
         met = "goal met" if ratio <= 0.5 else "goal MISSED"
-        name = "physicsrl-eval" if job else "physicsrl-train"
-        lines.append(f"{name}: follower / baseline follower = {ratio:.2f} (goal <= 0.5): {met}")
+        lines.append(f"{command}: follower / baseline follower = {ratio:.2f} (goal <= 0.5): {met}")
     save_summary("follower_memory", lines)
 
 
