@@ -475,16 +475,20 @@ def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
     best of the 46 open-loop schedules (single shock at 0) 58.3%; on 00-95 run 2 ends 69.8%
     against 54.2% for that schedule (19 / 4 draws), the supervised reference (leave-one-draw-out)
     75.0%, the best single shock per draw 91.7%; run 2's first shock alone would end 45.8%. The
-    searches' single shocks are the labels' episodes, outcome for outcome."""
+    GPU run (5 iterations of 1024 episodes) ends 77.1% of draws 00-47, 45.8% of 48-95 and
+    61.5% of all 96; its first shock alone 38.5%. The searches' single shocks are the labels'
+    episodes, outcome for outcome."""
     results = ROOT / "experiments" / "results"
-    run_2, probes = "run 2, iteration 55", "probe run, iteration 35"
+    run_2, probes, gpu = "run 2, iteration 55", "probe run, iteration 35", "GPU run, iteration 5"
     run_script(
         "atp_timing_further_draws.py",
         *("--out", str(results / "atp_timing_r35_labelled_draws"), "--folder", "."),
         *("--agent", f"{run_2}=atp_timing_r35_run2_agent_eval.csv"),
         *("--agent", f"{probes}=atp_timing_r35_probes_agent_eval.csv"),
+        *("--agent", f"{gpu}=atp_timing_r35_gpu_agent_eval.csv"),
         *("--first-shock", f"{run_2}={results / 'atp_timing_r35_run2_agent.torchrl'}"),
         *("--first-shock", f"{probes}={results / 'atp_timing_r35_probes_agent.torchrl'}"),
+        *("--first-shock", f"{gpu}={results / 'atp_timing_r35_gpu_agent.torchrl'}"),
     )
     lines = capsys.readouterr().out.splitlines()
     assert f"| {run_2} | 00-47 | 325.62 | 75.0% | 2.60 |  |" in lines
@@ -505,6 +509,10 @@ def test_r35_agents_on_labelled_draws_are_the_results_tables(capsys):
     assert reference in lines
     assert f"| {run_2}: its first shock alone (labels) | 00-95 |  | 45.8% |  |  |" in lines
     assert f"| {probes}: its first shock alone (labels) | 00-95 |  | 62.5% |  |  |" in lines
+    assert f"| {gpu} | 00-47 | 337.52 | 77.1% | 2.25 | 5 / 6 |" in lines
+    assert f"| {gpu} | 48-95 | 191.50 | 45.8% | 2.33 | 11 / 2 |" in lines
+    assert f"| {gpu} | 00-95 | 264.51 | 61.5% | 2.29 | 16 / 8 |" in lines
+    assert f"| {gpu}: its first shock alone (labels) | 00-95 |  | 38.5% |  |  |" in lines
     agree = "the labels and the searches' single shocks agree on 2304 of 2304 draws x decisions"
     assert agree in lines
 
@@ -976,6 +984,14 @@ ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's ru
             marks=pytest.mark.slow,  # the same kind of row as the run-2 agent's: make test-resolved
         ),
         pytest.param(
+            "atp_timing_r35_gpu_agent.torchrl",  # trained on a GPU, its rows from this CPU
+            "atp_timing_r35_gpu_agent_eval.csv",
+            [1, 10],
+            "AVX512",
+            ['overrides=["env.model.device=cpu","env.replicas=1"]'],
+            marks=pytest.mark.slow,  # likewise
+        ),
+        pytest.param(
             "atp_timing_r35_refit/fresh_128x2.torchrl",
             "atp_timing_r35_refit/fresh_128x2_eval.csv",
             [0, 1],
@@ -1024,11 +1040,12 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     ended later, 431 against 442), so up to 3 rows may differ. The radius-35 agent's table was
     made since, on 2 ranks x 10 replicas with AVX-512: draws 01 and 10 (its shortest episodes),
     one replica per rank, give their rows exactly on such a CPU (a replica does not depend on
-    its batch), and on another one row may differ (up to 3 in 20); the probe run's agent and a
-    refit likewise. The timing agent's 20 draws (~100 s), the probe agent's and the refit's
-    first 2 and the resolved agents' first rows (1000 x 1000, with its induction: ~5 min on 2
-    ranks; the GPU-trained one's on DOLFINx in float64, where its table came from the GPU in
-    float32) run with ``make test-resolved``, outside ``make test``."""
+    its batch), and on another one row may differ (up to 3 in 20); the probe run's agent, a
+    refit and the GPU run's agent (trained on a GPU, its table from this kind of CPU)
+    likewise. The timing agent's 20 draws (~100 s), the 2 draws of the probe agent, the refit
+    and the GPU run, and the resolved agents' first rows (1000 x 1000, with its induction: ~5
+    min on 2 ranks; G2's on DOLFINx in float64, where its table came from the GPU in float32)
+    run with ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
