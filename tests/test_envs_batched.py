@@ -114,6 +114,31 @@ def test_simulated_cost_by_phase():
         assert all(seconds > 0 for seconds, steps, _ in env.simulated.values() if steps)
 
 
+def test_inducing_ahead_starts_the_same_episodes_with_fewer_batch_steps():
+    """``env.model.induce_ahead``: after a reset of all 3 replicas, replicas 1, 0 and 2 end
+    their episodes one by one. Without it each new episode is induced alone (4 inductions'
+    batch-steps); with it the first also induces the next draws of the other two, which then
+    start without one (2 inductions' batch-steps, the same replica-steps). The episodes start
+    alike (to round-off: eager float64's products round with the batch's width), and the
+    generators end where they were: the draws ahead came from copies."""
+    runs = {}
+    for ahead in ("false", "true"):
+        env = batched(3, extra=(f"env.model.induce_ahead={ahead}",))
+        starts = [env.reset()["observation"]]
+        for replica in (1, 0, 2):
+            mask = torch.arange(3)[:, None] == replica
+            starts.append(env.reset(TensorDict({"_reset": mask}, [3]))["observation"][replica])
+        generators = [rng.bit_generator.state for rng in env.rngs]
+        runs[ahead] = torch.cat([x.reshape(-1) for x in starts]), env.simulated, generators
+    (lazy, lazy_cost, lazy_rngs), (early, early_cost, early_rngs) = runs["false"], runs["true"]
+    np.testing.assert_allclose(early.numpy(), lazy.numpy(), rtol=1e-9, atol=1e-12)
+    assert early_rngs == lazy_rngs
+    sim, config = env.simulator, env.config
+    induction = sim.steps(config.reset.stimulus_time) + sim.steps(config.reset.rest_time[0])
+    assert lazy_cost["induction"][1:] == (6 * induction, 4 * induction)
+    assert early_cost["induction"][1:] == (6 * induction, 2 * induction)
+
+
 @pytest.mark.parametrize("capacity", [0, 1])
 def test_more_replicas_than_the_snapshot_library_holds(capacity):
     """A reset of more new draws than ``env.snapshots.capacity`` keeps (0: none) starts every
@@ -309,6 +334,11 @@ def test_a_reset_that_names_no_replica_and_an_action_out_of_range():
         (("env.replicas=4",), "env.replicas must be 1 with model.backend=petsc"),
         (("env.model.compile=true",), "env.model.compile=True needs backend=torch"),
         (("env.model.device=cuda",), "env.model.device=cuda needs backend=torch"),
+        (("env.model.induce_ahead=true",), "env.model.induce_ahead=True needs backend=torch"),
+        (
+            ("env.model.backend=torch", "env.model.induce_ahead=sometimes"),
+            "env.model.induce_ahead must be true or false, got 'sometimes'",
+        ),
         (
             ("env.model.dtype=float32", "env.model.compile=true"),
             "env.model.dtype=float32 and compile=True need backend=torch",

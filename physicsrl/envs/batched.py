@@ -8,7 +8,11 @@ rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x
 
 - Reset honours TorchRL's ``"_reset"`` mask: only the replicas it selects start a new episode
   (their rows of u and w are written from the snapshot library, or induced: the distinct new
-  draws of the call in one batch, by either induction); the others keep their state.
+  draws of the call in one batch, by either induction); the others keep their state. With
+  ``env.model.induce_ahead`` that batch also induces the next draw of every other replica
+  (read from a copy of its generator, so its episodes stay the same), and the replicas whose
+  episodes end later start from those states: on a GPU, where a step of a few replicas costs
+  about what a full batch's does, the episodes that end one by one then cost no induction.
 - Step: every replica takes its action for one decision interval (shocks as a (B, cells)
   current on the replicas that shock); replicas that reach ``max_decisions`` without success
   run up to ``extra_waits`` further intervals in a sub-batch. A replica whose state stops being
@@ -31,6 +35,7 @@ Built by :func:`physicsrl.envs.make_env` when ``env.model.backend`` is ``torch``
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -114,6 +119,7 @@ class BatchedATPEnv(Members):
         self.intervals = np.zeros(B, dtype=np.int64)
         self.simulated = {phase: (0.0, 0, 0) for phase in ("induction", "decisions", "waits")}
         self.rngs: list[np.random.Generator] = [None] * B  # seeded below (member_seed)
+        self._ahead: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # draw -> (u, w)
 
         flag = Categorical(2, shape=(B, 1), dtype=torch.bool)
         self.observation_spec = Composite(
@@ -212,27 +218,32 @@ class BatchedATPEnv(Members):
     def _start(self, replicas: list[int]) -> None:
         """New episodes for ``replicas``: each draws from its generator (again if the state
         comes out non-finite, as :class:`~physicsrl.envs.env.PhysicsEnv` does); rows of u and w
-        from the snapshot library or from one batched induction of the draws not in it."""
+        from the states induced ahead, the snapshot library, or one batched induction of the
+        draws in neither (with ``induce_ahead``, and the other replicas' next draws)."""
         pending = {i: 0 for i in replicas}  # replica -> attempts so far
         while pending:
             keys = {i: self.sampler(self.rngs[i]) for i in pending}
-            new = [i for i in pending if keys[i] not in self.snapshots]
+            new = [i for i in pending if not self._stored(keys[i])]
             fresh = set(new)
             for i in [i for i in pending if i not in fresh]:
-                u, w = self.snapshots.get(keys[i])
-                self.u[i], self.w[i] = self.simulator.tensor(u), self.simulator.tensor(w)
+                self.u[i], self.w[i] = self._take(keys[i])
                 del pending[i]
             if not new:
                 continue
             # each distinct draw induced once (policies compared on the same seeds share draws);
             # the induced states are used as they are: the library may keep fewer than len(new)
             draws = list(dict.fromkeys(keys[i] for i in new))
+            ahead = self._next_draws(pending) if self.config.model.induce_ahead else []
+            ahead = [key for key in ahead if key not in draws]
             with self._phase("induction"):
-                u, w, finite = self._induce(draws)
-            row = {key: j for j, key in enumerate(draws)}
+                u, w, finite = self._induce(draws + ahead)
+            row = {key: j for j, key in enumerate(draws + ahead)}
             for key, j in row.items():
                 if bool(finite[j]):
                     self.snapshots.put(key, u[j].cpu().numpy(), w[j].cpu().numpy())
+            self._ahead.update(
+                {key: (u[row[key]], w[row[key]]) for key in ahead if bool(finite[row[key]])}
+            )
             for i in new:
                 j = row[keys[i]]
                 if bool(finite[j]):
@@ -244,6 +255,25 @@ class BatchedATPEnv(Members):
                     raise ResetDiverged(self.max_reset_attempts, f" (replica {i})")
         self.decisions[replicas] = 0
         self.intervals[replicas] = 0
+
+    def _stored(self, key: tuple) -> bool:
+        return key in self._ahead or key in self.snapshots
+
+    def _take(self, key: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+        """(u, w) of the draw ``key``: induced ahead (then forgotten), else from the library."""
+        if key in self._ahead:
+            return self._ahead.pop(key)
+        return tuple(self.simulator.tensor(x) for x in self.snapshots.get(key))
+
+    def _next_draws(self, pending: dict[int, int]) -> list[tuple]:
+        """The next draw of each replica not in ``pending`` that is not stored yet, from a copy
+        of its generator (its own is not advanced); the states induced ahead for draws that no
+        replica comes to next are dropped."""
+        upcoming = [
+            self.sampler(copy.deepcopy(rng)) for i, rng in enumerate(self.rngs) if i not in pending
+        ]
+        self._ahead = {key: self._ahead[key] for key in upcoming if key in self._ahead}
+        return [key for key in dict.fromkeys(upcoming) if not self._stored(key)]
 
     def _advance(self, rows: torch.Tensor | None, shocks: np.ndarray | None) -> np.ndarray:
         """One decision interval for the replicas ``rows`` (None: all), with the shock on those
