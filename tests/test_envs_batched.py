@@ -23,6 +23,7 @@ from torchrl.envs.utils import check_env_specs
 
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs import load_config, make_env
+from physicsrl.envs.atp import MSModel
 from physicsrl.envs.baselines import Constant, EveryKth
 from physicsrl.envs.batched import BatchedATPEnv
 from physicsrl.envs.gym import GymnasiumVectorView
@@ -120,7 +121,10 @@ def test_inducing_ahead_starts_the_same_episodes_with_fewer_batch_steps():
     batch-steps); with it the first also induces the next draws of the other two, which then
     start without one (2 inductions' batch-steps, the same replica-steps). The episodes start
     alike (to round-off: eager float64's products round with the batch's width), and the
-    generators end where they were: the draws ahead came from copies."""
+    generators end where they were: the draws ahead came from copies. ``auto`` (the default)
+    is off on the CPU; ``false`` is refused by no backend (it turns nothing on)."""
+    assert batched(1).induce_ahead is False
+    assert MSModel(backend="petsc", induce_ahead=False).induce_ahead is False
     runs = {}
     for ahead in ("false", "true"):
         env = batched(3, extra=(f"env.model.induce_ahead={ahead}",))
@@ -337,7 +341,7 @@ def test_a_reset_that_names_no_replica_and_an_action_out_of_range():
         (("env.model.induce_ahead=true",), "env.model.induce_ahead=True needs backend=torch"),
         (
             ("env.model.backend=torch", "env.model.induce_ahead=sometimes"),
-            "env.model.induce_ahead must be true or false, got 'sometimes'",
+            "env.model.induce_ahead must be true, false or auto, got 'sometimes'",
         ),
         (
             ("env.model.dtype=float32", "env.model.compile=true"),

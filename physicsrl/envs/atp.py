@@ -83,9 +83,9 @@ class MSModel:
     the time loop: ``petsc`` (DOLFINx/PETSc, distributed over the ranks of a group) or
     ``torch`` (:mod:`physicsrl.envs.batched`: ``replicas`` copies on one rank, on ``device``,
     in ``dtype``, through ``torch.compile`` with ``compile``: see
-    :class:`~physicsrl.fem.batched.BatchedMonodomain`; with ``induce_ahead`` each induction
-    also takes every other replica's next draw, for a GPU, where a small batch's step costs
-    about a full one's)."""
+    :class:`~physicsrl.fem.batched.BatchedMonodomain`; with ``induce_ahead``, ``auto``
+    meaning on a CUDA device, each induction also takes every other replica's next draw: on a
+    GPU a small batch's step costs about a full one's)."""
 
     dt: float = 0.03
     tau_in: float = 0.3
@@ -101,7 +101,7 @@ class MSModel:
     device: str = "cpu"
     dtype: str = DTYPES[0]
     compile: bool = False
-    induce_ahead: bool = False
+    induce_ahead: bool | str = "auto"
 
     def __post_init__(self):
         for name in ("dt", "tau_in", "tau_out", "tau_open", "tau_close", "D"):
@@ -119,14 +119,15 @@ class MSModel:
         choice("backend", self.backend, BACKENDS)
         choice("device", self.device, ("cpu", "cuda"))
         choice("dtype", self.dtype, DTYPES)
-        for name in ("compile", "induce_ahead"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        if not isinstance(self.compile, bool):
+            raise ValueError(f"compile must be true or false, got {self.compile!r}")
+        if not (isinstance(self.induce_ahead, bool) or self.induce_ahead == "auto"):
+            raise ValueError(f"induce_ahead must be true, false or auto, got {self.induce_ahead!r}")
         torch_only = [f for f in fields(self) if f.name in TORCH_ONLY]
-        chosen = [
+        chosen = [  # false turns off what the PETSc backend does not do anyway
             f"{f.name}={getattr(self, f.name)}"
             for f in torch_only
-            if getattr(self, f.name) != f.default
+            if getattr(self, f.name) not in (f.default, False)
         ]
         if self.backend != "torch" and chosen:
             raise ValueError(

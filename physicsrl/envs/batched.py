@@ -9,10 +9,11 @@ rank is a group of B replicas (``mpi.ranks_per_env=1``) and the learner sees N x
 - Reset honours TorchRL's ``"_reset"`` mask: only the replicas it selects start a new episode
   (their rows of u and w are written from the snapshot library, or induced: the distinct new
   draws of the call in one batch, by either induction); the others keep their state. With
-  ``env.model.induce_ahead`` that batch also induces the next draw of every other replica
-  (read from a copy of its generator, so its episodes stay the same), and the replicas whose
-  episodes end later start from those states: on a GPU, where a step of a few replicas costs
-  about what a full batch's does, the episodes that end one by one then cost no induction.
+  ``env.model.induce_ahead`` (``auto``: on CUDA) that batch also induces the next draw of every
+  other replica (read from a copy of its generator, so its episodes stay the same), and the
+  replicas whose episodes end later start from those states: on a GPU, where a step of a few
+  replicas costs about what a full batch's does, the episodes that end one by one then cost no
+  induction.
 - Step: every replica takes its action for one decision interval (shocks as a (B, cells)
   current on the replicas that shock); replicas that reach ``max_decisions`` without success
   run up to ``extra_waits`` further intervals in a sub-batch. A replica whose state stops being
@@ -96,6 +97,8 @@ class BatchedATPEnv(Members):
             domain, **model.numerics(), **model.torch_settings()
         )
         report(sim.resolution, model.warn_resolution)
+        ahead = model.induce_ahead
+        self.induce_ahead = sim.device.type == "cuda" if ahead == "auto" else ahead
         V = sim.V
         rows = np.vstack([form_rows(V, [1.0]), observation.rows(V)])  # row 0: integral of u
         self.rows = sim.tensor(rows)
@@ -233,7 +236,7 @@ class BatchedATPEnv(Members):
             # each distinct draw induced once (policies compared on the same seeds share draws);
             # the induced states are used as they are: the library may keep fewer than len(new)
             draws = list(dict.fromkeys(keys[i] for i in new))
-            ahead = self._next_draws(pending) if self.config.model.induce_ahead else []
+            ahead = self._next_draws(pending) if self.induce_ahead else []
             ahead = [key for key in ahead if key not in draws]
             with self._phase("induction"):
                 u, w, finite = self._induce(draws + ahead)
