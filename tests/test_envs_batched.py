@@ -122,7 +122,8 @@ def test_inducing_ahead_starts_the_same_episodes_with_fewer_batch_steps():
     start without one (2 inductions' batch-steps, the same replica-steps). The episodes start
     alike (to round-off: eager float64's products round with the batch's width), and the
     generators end where they were: the draws ahead came from copies. ``auto`` (the default)
-    is off on the CPU; ``false`` is refused by no backend (it turns nothing on)."""
+    is off on the CPU; ``false`` is refused by no backend (it turns nothing on). Replicas that
+    share a draw both start from its state induced ahead."""
     assert batched(1).induce_ahead is False
     assert MSModel(backend="petsc", induce_ahead=False).induce_ahead is False
     runs = {}
@@ -141,6 +142,16 @@ def test_inducing_ahead_starts_the_same_episodes_with_fewer_batch_steps():
     induction = sim.steps(config.reset.stimulus_time) + sim.steps(config.reset.rest_time[0])
     assert lazy_cost["induction"][1:] == (6 * induction, 4 * induction)
     assert early_cost["induction"][1:] == (6 * induction, 2 * induction)
+
+    # replicas that share their draws (policies compared on the same seeds) both start from the
+    # state induced ahead, with no snapshot library to fall back on
+    env = batched(3, extra=("env.model.induce_ahead=true", "env.snapshots.capacity=0"))
+    env.seed_each([7, 7, 9])
+    env.reset()
+    env.reset(TensorDict({"_reset": torch.tensor([[False], [False], [True]])}, [3]))
+    start = env.reset(TensorDict({"_reset": torch.tensor([[True], [True], [False]])}, [3]))
+    assert torch.equal(start["observation"][0], start["observation"][1])
+    assert env.simulated["induction"][1:] == (4 * induction, 2 * induction)
 
 
 @pytest.mark.parametrize("capacity", [0, 1])

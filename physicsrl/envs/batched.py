@@ -263,9 +263,10 @@ class BatchedATPEnv(Members):
         return key in self._ahead or key in self.snapshots
 
     def _take(self, key: tuple) -> tuple[torch.Tensor, torch.Tensor]:
-        """(u, w) of the draw ``key``: induced ahead (then forgotten), else from the library."""
+        """(u, w) of the draw ``key``: induced ahead (kept for replicas that share the draw,
+        until no replica comes to it next), else from the library."""
         if key in self._ahead:
-            return self._ahead.pop(key)
+            return self._ahead[key]
         return tuple(self.simulator.tensor(x) for x in self.snapshots.get(key))
 
     def _next_draws(self, pending: dict[int, int]) -> list[tuple]:
