@@ -236,8 +236,7 @@ class BatchedATPEnv(Members):
             # each distinct draw induced once (policies compared on the same seeds share draws);
             # the induced states are used as they are: the library may keep fewer than len(new)
             draws = list(dict.fromkeys(keys[i] for i in new))
-            ahead = self._next_draws(pending) if self.induce_ahead else []
-            ahead = [key for key in ahead if key not in draws]
+            ahead = self._next_draws(pending, draws) if self.induce_ahead else []
             with self._phase("induction"):
                 u, w, finite = self._induce(draws + ahead)
             row = {key: j for j, key in enumerate(draws + ahead)}
@@ -269,15 +268,15 @@ class BatchedATPEnv(Members):
             return self._ahead[key]
         return tuple(self.simulator.tensor(x) for x in self.snapshots.get(key))
 
-    def _next_draws(self, pending: dict[int, int]) -> list[tuple]:
-        """The next draw of each replica not in ``pending`` that is not stored yet, from a copy
-        of its generator (its own is not advanced); the states induced ahead for draws that no
-        replica comes to next are dropped."""
+    def _next_draws(self, pending: dict[int, int], inducing: list[tuple]) -> list[tuple]:
+        """The next draw of each replica not in ``pending`` that is neither stored nor among the
+        draws ``inducing``, from a copy of its generator (its own is not advanced); the states
+        induced ahead for draws that no replica comes to next are dropped."""
         upcoming = [
             self.sampler(copy.deepcopy(rng)) for i, rng in enumerate(self.rngs) if i not in pending
         ]
         self._ahead = {key: self._ahead[key] for key in upcoming if key in self._ahead}
-        return [key for key in dict.fromkeys(upcoming) if not self._stored(key)]
+        return [k for k in dict.fromkeys(upcoming) if k not in inducing and not self._stored(k)]
 
     def _advance(self, rows: torch.Tensor | None, shocks: np.ndarray | None) -> np.ndarray:
         """One decision interval for the replicas ``rows`` (None: all), with the shock on those
