@@ -163,51 +163,36 @@ def test_more_replicas_than_the_snapshot_library_holds(capacity):
     assert torch.equal(small, roomy)
 
 
-def test_compiled_float32_env_follows_the_eager_float64_one():
-    """``env.model.compile=true env.model.dtype=float32`` reach the simulator and give the
-    eager float64 episode to float32 accuracy: observations of a reset and of two decisions
-    (one shock) and the rewards agree to 1e-3 of their scale (measured: 2e-4)."""
-    runs = []
-    for extra in ((), ("env.model.compile=true", "env.model.dtype=float32")):
-        env = batched(2, extra=extra)
+def test_compiled_float32_replicas_follow_the_eager_float64_ones_and_not_their_batch():
+    """On the report's 60 x 60 grid, ``env.model.compile=true env.model.dtype=float32`` reach
+    the simulator and give the eager float64 episodes of a batch of 8 to float32 accuracy:
+    observations of a reset and of two decisions (a shock in every other replica) and the
+    rewards agree to 1e-3 of their scale (measured: 2e-4). And replica 0 alone gives its
+    compiled observations and rewards in the batch to the bit, through a shock. A product of
+    the whole batch with the catheter's rows (or of the shock's current) rounded each replica
+    differently for another batch size, and a closed-loop policy's episode could then end
+    otherwise (the stored timing agent's seed 1000000000: 413 in its table's batch, 424
+    alone)."""
+    grid = [option for option in SMALL if not option.startswith("env.mesh.cells")]
+    compiled = ("env.model.compile=true", "env.model.dtype=float32")
+    runs = {}
+    for replicas, extra in ((8, ()), (8, compiled), (1, compiled)):
+        options = [*grid, "env.mesh.cells=60", *extra, "env.model.backend=torch"]
+        cfg = load_config("ms", "catheter", "atp", [*options, f"env.replicas={replicas}"], seed=3)
+        env = make_env(cfg, Coordinator())
         assert env.simulator.dtype == (torch.float32 if extra else torch.float64)
         rows = [env.reset()["observation"]]
-        for action in ([1, 0], [0, 0]):
-            td = env.step(TensorDict({"action": torch.tensor(action)}, batch_size=[2]))
-            rows.append(td["next", "observation"])
-            rows.append(td["next", "reward"])
+        for first in (1, 0):
+            action = torch.tensor([first * (i % 2 == 0) for i in range(replicas)])
+            td = env.step(TensorDict({"action": action}, [replicas]))
+            rows += [td["next", "observation"], td["next", "reward"]]
             env.step_mdp(td)
-        runs.append([row.double().numpy() for row in rows])
-    for compiled, eager in zip(*runs, strict=True):
-        np.testing.assert_allclose(compiled, eager, rtol=1e-3, atol=1e-3 * np.abs(eager).max())
-
-
-def test_a_replica_of_the_compiled_float32_env_does_not_depend_on_its_batch():
-    """On the report's 60 x 60 grid, compiled float32: replica 0 alone and in a batch of 8
-    (the same draw) gives the same observations and rewards to the bit, through a shock. A
-    product of the whole batch with the catheter's rows (or of the shock's current) rounded
-    each replica differently for another batch size, and a closed-loop policy's episode could
-    then end otherwise (the stored timing agent's seed 1000000000: 413 in its table's batch,
-    424 alone)."""
-    grid = [option for option in SMALL if not option.startswith("env.mesh.cells")]
-    extra = (*grid, "env.mesh.cells=60", "env.model.compile=true", "env.model.dtype=float32")
-    runs = []
-    for replicas in (1, 8):
-        cfg = load_config(
-            "ms",
-            "catheter",
-            "atp",
-            [*extra, "env.model.backend=torch", f"env.replicas={replicas}"],
-            seed=3,
-        )
-        env = make_env(cfg, Coordinator())
-        rows = [env.reset()["observation"][0]]
-        for action in (1, 0):
-            td = env.step(TensorDict({"action": torch.full((replicas,), action)}, [replicas]))
-            rows += [td["next", "observation"][0], td["next", "reward"][0]]
-            env.step_mdp(td)
-        runs.append(torch.cat(rows))
-    assert torch.equal(*runs), (runs[0] - runs[1]).abs().max()
+        runs[replicas, bool(extra)] = rows
+    for fast, eager in zip(runs[8, True], runs[8, False], strict=True):
+        fast, eager = fast.double().numpy(), eager.numpy()
+        np.testing.assert_allclose(fast, eager, rtol=1e-3, atol=1e-3 * np.abs(eager).max())
+    alone, in_batch = (torch.cat([row[0] for row in runs[n, True]]) for n in (1, 8))
+    assert torch.equal(alone, in_batch), (alone - in_batch).abs().max()
 
 
 # the cross-field induction, short: S1 for 6, S2 after 0-3 more, then a rest of 3-9

@@ -966,8 +966,15 @@ ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's ru
 @pytest.mark.parametrize(
     "policy, table, draws, exact_on, overrides",
     [
-        ("atp_agent.torchrl", "atp_agent_eval.csv", [0], "any CPU", []),
         ("atp_runB_agent.torchrl", "atp_runB_it315_eval.csv", [0], "any CPU", []),
+        pytest.param(
+            "atp_agent.torchrl",
+            "atp_agent_eval.csv",
+            [0],
+            "any CPU",
+            [],
+            marks=pytest.mark.slow,  # the same kind of row as run B's: make test-resolved
+        ),
         (
             "atp_timing_r35_run2_agent.torchrl",
             "atp_timing_r35_run2_agent_eval.csv",
@@ -1042,10 +1049,10 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     one replica per rank, give their rows exactly on such a CPU (a replica does not depend on
     its batch), and on another one row may differ (up to 3 in 20); the probe run's agent, a
     refit and the GPU run's agent (trained on a GPU, its table from this kind of CPU)
-    likewise. The timing agent's 20 draws (~100 s), the 2 draws of the probe agent, the refit
-    and the GPU run, and the resolved agents' first rows (1000 x 1000, with its induction: ~5
-    min on 2 ranks; G2's on DOLFINx in float64, where its table came from the GPU in float32)
-    run with ``make test-resolved``, outside ``make test``."""
+    likewise. The first agent's row (~20 s), the timing agent's 20 draws (~100 s), the 2 draws
+    of the probe agent, the refit and the GPU run, and the resolved agents' first rows (1000 x
+    1000, with its induction: ~5 min on 2 ranks; G2's on DOLFINx in float64, where its table
+    came from the GPU in float32) run with ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
@@ -1079,7 +1086,14 @@ TORCH_FLOAT32 += ["env.model.dtype=float32"]
     [
         # the draws whose episodes end soonest (the others run 24 decisions or more)
         ("atp_timing", "single shock at 0", [1], TORCH_FLOAT32, ""),
-        ("atp_timing_r35", "single shock at 0", [1, 10], TORCH_FLOAT32, ""),
+        pytest.param(  # the same kind of row as atp_timing's: make test-resolved
+            "atp_timing_r35",
+            "single shock at 0",
+            [1, 10],
+            TORCH_FLOAT32,
+            "",
+            marks=pytest.mark.slow,
+        ),
         pytest.param(
             "atp_resolved_timing",
             "single shock at 5",
@@ -1108,9 +1122,10 @@ def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
     instructions and on the batch (the products with the catheter's rows and the shock's
     current): there one of the rows may end its episode at another interval (another return
     and length; the same success and shocks), as r35's first draw does on an AVX-512 Xeon (442
-    against the table's 450, alone and in a batch of 10). The resolved one's (1000 x 1000, ~4
-    min here) runs with ``make test-resolved``, as does the resolved bar's schedule, whose rows
-    came from a GPU (``_cuda``: torch, float32), here recomputed with DOLFINx in float64."""
+    against the table's 450, alone and in a batch of 10). The radius-35 bar's rows (~25 s) and
+    the resolved one's (1000 x 1000, ~4 min here) run with ``make test-resolved``, as does the
+    resolved bar's schedule, whose rows came from a GPU (``_cuda``: torch, float32), here
+    recomputed with DOLFINx in float64."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
