@@ -25,7 +25,7 @@ train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 test: setup  ## run the test suite (unit and MPI tests; the slowest results rows: test-resolved)
 	$(BIN)/python -m pytest
 
-test-resolved: setup  ## the results rows that take minutes on 2 ranks (1000 x 1000, the timing agent's 20 draws) or repeat a kind make test checks (~9 min)
+test-resolved: setup  ## the results rows that take minutes on 2 ranks (1000 x 1000, the timing agent's 20 draws) or repeat a kind make test checks (~14 min)
 	$(BIN)/python -m pytest -m 'resolved or slow'
 
 SLURM := tests/slurm/local_slurm.sh
