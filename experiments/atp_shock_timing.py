@@ -23,8 +23,9 @@ and means) and prints the learning curve: the held-out success with the first 8,
 labelled draws.
 
 ``features``: the same leave-one-draw-out choice for other inputs of the estimate
-(:data:`FEATURE_SETS`: the readings alone, and with the previous decision's readings), on the
-labels alone; ``atp_shock_timing_features.txt``.
+(:data:`FEATURE_SETS`: the readings alone, and with the previous decision's readings) and other
+estimates of P(y = 1 | x) than the neighbours' (:class:`Logistic`: a linear one and a small
+network), on the labels alone; ``atp_shock_timing_features.txt``.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -146,8 +148,8 @@ policy with stacked frames) tell the window better than its present?"""
 
 def compare_features(out: Path) -> None:
     """The leave-one-draw-out success of the shock-once policy for each of
-    :data:`FEATURE_SETS`, on the labelled draws alone (no episodes run), into
-    ``<out>/atp_shock_timing_features.txt``."""
+    :data:`FEATURE_SETS`, with the neighbours' estimate and each of :data:`ESTIMATES`, on the
+    labelled draws alone (no episodes run), into ``<out>/atp_shock_timing_features.txt``."""
     _, x, y, never = load_labels(out)
     readings, step = x[..., :-1], x[..., -1:]
     lines = [f"{shlex.join(['python', *sys.argv])}", provenance()]
@@ -156,6 +158,10 @@ def compare_features(out: Path) -> None:
         k, theta, success = choose(inputs(readings, step), y, never)
         lines.append(f"{name}: {success:.1%} (neighbours {k}, theta {theta})")
         print(lines[-1], flush=True)
+        for estimate in ESTIMATES.items():
+            _, theta, success = choose(inputs(readings, step), y, never, dict([estimate]))
+            lines.append(f"{name}, {estimate[0]}: {success:.1%} (theta {theta})")
+            print(lines[-1], flush=True)
     (out / "atp_shock_timing_features.txt").write_text("\n".join(lines) + "\n")
 
 
@@ -173,22 +179,59 @@ class Neighbours:
         return self.y[np.argsort(distances, 1)[:, : self.k]].mean(1)
 
 
+class Logistic:
+    """p(x) = sigmoid(f(x)), f linear (``hidden`` = 0) or two tanh layers of ``hidden`` units,
+    fitted to the labels by the mean binary cross-entropy (full batch, Adam, weight decay
+    1e-4, 300 steps; inputs standardised as :class:`Neighbours`'; torch's generator seeded)."""
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, hidden: int, steps: int = 300):
+        self.mean, self.scale = x.mean(0), x.std(0) + 1e-9
+        torch.manual_seed(0)
+        size = x.shape[1]
+        if hidden:
+            layers = [torch.nn.Linear(size, hidden), torch.nn.Tanh()]
+            layers += [torch.nn.Linear(hidden, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, 1)]
+            self.f = torch.nn.Sequential(*layers).double()
+        else:
+            self.f = torch.nn.Linear(size, 1).double()
+        optimizer = torch.optim.Adam(self.f.parameters(), lr=1e-2, weight_decay=1e-4)
+        inputs, labels = self._standardised(x), torch.from_numpy(y)
+        for _ in range(steps):
+            optimizer.zero_grad()
+            logits = self.f(inputs)[:, 0]
+            torch.nn.functional.binary_cross_entropy_with_logits(logits, labels).backward()
+            optimizer.step()
+
+    def _standardised(self, x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy((np.atleast_2d(x) - self.mean) / self.scale)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return torch.sigmoid(self.f(self._standardised(x))[:, 0]).numpy()
+
+
+ESTIMATES = {
+    "logistic": partial(Logistic, hidden=0),
+    "network 32 x 32": partial(Logistic, hidden=32),
+}
+"""Estimates of P(y = 1 | x) compared by ``features`` beside the neighbours'."""
+
+
 def first_over(p: np.ndarray, theta: float) -> int:
     """The first decision with p > theta (NaN: not reached), -1 for none."""
     over = np.flatnonzero(np.nan_to_num(p, nan=-1.0) > theta)
     return int(over[0]) if len(over) else -1
 
 
-def leave_one_draw_out(x: np.ndarray, y: np.ndarray, k: int) -> np.ndarray:
+def leave_one_draw_out(x: np.ndarray, y: np.ndarray, estimate) -> np.ndarray:
     """(draws, decisions): p of each labelled draw's points from the other draws' labels
-    (x: (draws, decisions, features), NaN where not seen; y: (draws, decisions))."""
+    (x: (draws, decisions, features), NaN where not seen; y: (draws, decisions); ``estimate``:
+    (x, y) of the labelled points -> p, e.g. ``partial(Neighbours, k=15)``)."""
     seen = ~np.isnan(x[..., 0])
     p = np.full(y.shape, np.nan)
     for d in range(len(x)):
         others = np.arange(len(x)) != d
-        p[d, seen[d]] = Neighbours(x[others][seen[others]], y[others][seen[others]], k)(
-            x[d][seen[d]]
-        )
+        p[d, seen[d]] = estimate(x[others][seen[others]], y[others][seen[others]])(x[d][seen[d]])
     return p
 
 
@@ -199,16 +242,19 @@ def outcomes(p: np.ndarray, y: np.ndarray, never: np.ndarray, theta: float) -> n
     return np.array([y[d, s] if s >= 0 else never[d] for d, s in enumerate(shots)])
 
 
-def choose(x: np.ndarray, y: np.ndarray, never: np.ndarray) -> tuple[int, float, float]:
-    """(neighbours, theta, success) maximising the leave-one-draw-out success of the policy on
-    the labelled draws."""
-    best = (0, 0.0, -1.0)
-    for k in NEIGHBOURS:
-        p = leave_one_draw_out(x, y, k)
+def choose(x: np.ndarray, y: np.ndarray, never: np.ndarray, estimates: dict | None = None):
+    """(the estimate's key, theta, success) maximising the leave-one-draw-out success of the
+    policy on the labelled draws, among ``estimates`` (key -> ``estimate`` of
+    :func:`leave_one_draw_out`; by default the neighbours' for each k of :data:`NEIGHBOURS`,
+    keyed by k)."""
+    estimates = estimates or {k: partial(Neighbours, k=k) for k in NEIGHBOURS}
+    best = (None, 0.0, -1.0)
+    for key, estimate in estimates.items():
+        p = leave_one_draw_out(x, y, estimate)
         for theta in THRESHOLDS:
             success = float(outcomes(p, y, never, theta).mean())
             if success > best[2]:
-                best = (k, float(theta), success)
+                best = (key, float(theta), success)
     return best
 
 

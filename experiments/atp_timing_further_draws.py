@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from atp_baselines import hindsight  # noqa: E402
-from atp_shock_timing import choose, leave_one_draw_out, load_labels, outcomes  # noqa: E402
+from atp_shock_timing import (  # noqa: E402
+    Neighbours,
+    choose,
+    leave_one_draw_out,
+    load_labels,
+    outcomes,
+)
 
 from physicsrl import builders  # noqa: E402
 from physicsrl.checkpoint import read  # noqa: E402
@@ -67,7 +74,8 @@ def labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray, np
     as ``fit`` chooses them from all the labels) on each draw with that draw left out."""
     seeds, x, single, never = load_labels(out)
     k, theta, _ = choose(x, single, never)
-    reference = outcomes(leave_one_draw_out(x, single, k), single, never, theta)
+    p = leave_one_draw_out(x, single, partial(Neighbours, k=k))
+    reference = outcomes(p, single, never, theta)
     return seeds, x, single, never, reference
 
 

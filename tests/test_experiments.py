@@ -800,6 +800,9 @@ def test_shock_timing_choice_finds_a_rule_the_readings_show():
     assert success == 1.0 and k in module["NEIGHBOURS"]
     p = module["Neighbours"](x[~np.isnan(x[..., 0])], y[~np.isnan(x[..., 0])], k)
     assert [module["first_over"](p(x[d]), theta) for d in range(1, draws)] == list(good[1:])
+    for name, estimate in module["ESTIMATES"].items():  # the rule is linear in the reading
+        key, theta, success = module["choose"](x, y, np.zeros(draws), {name: estimate})
+        assert (key, success) == (name, 1.0)
 
 
 def test_shock_once_runs_the_single_shock_schedule_of_its_decision():
@@ -845,7 +848,9 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     run_script("atp_shock_timing.py", "features", *arguments)  # the labels alone
     lines = (tmp_path / "atp_shock_timing_features.txt").read_text().splitlines()
     assert "features" in lines[0] and "commit" in lines[1] and "4 labelled draws" in lines[2]
-    assert [line.split(":")[0] for line in lines[3:]] == list(shock_timing()["FEATURE_SETS"])
+    module = shock_timing()
+    names = [[f, *(f"{f}, {e}" for e in module["ESTIMATES"])] for f in module["FEATURE_SETS"]]
+    assert [line.split(":")[0] for line in lines[3:]] == sum(names, [])
     # on 2 ranks: the same policy and episodes, the follower's environment serving the leader
     (tmp_path / "atp_shock_timing.csv").rename(tmp_path / "one_rank.csv")
     script = str(ROOT / "experiments" / "atp_shock_timing.py")
