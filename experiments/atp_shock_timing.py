@@ -150,6 +150,7 @@ def compare_features(out: Path) -> None:
     """The leave-one-draw-out success of the shock-once policy for each of
     :data:`FEATURE_SETS`, with the neighbours' estimate and each of :data:`ESTIMATES`, on the
     labelled draws alone (no episodes run), into ``<out>/atp_shock_timing_features.txt``."""
+    torch.set_num_threads(1)  # fits of ~2,000 points: more threads only wait on each other
     _, x, y, never = load_labels(out)
     readings, step = x[..., :-1], x[..., -1:]
     lines = [f"{shlex.join(['python', *sys.argv])}", provenance()]
