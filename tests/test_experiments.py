@@ -636,7 +636,7 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     5 of the 80 episodes change outcome: the bar's on draws 06 and 10, G2's on 10 and 14 and
     the third schedule's on 06 (experiments/results/README.md). The bar's episode on draw 10
     at 4000 x 4000 (``atp_resolved_timing_4000/``) is its 2000 x 2000 row, and so are G2's on
-    draws 10 and 14."""
+    draws 10 and 14; the bar's on draw 06 ends there, as at 1000 x 1000."""
     from physicsrl.tables import mean_metrics, read_per_policy
 
     results = ROOT / "experiments" / "results"
@@ -699,17 +699,17 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
         (292.65, 0.65, 2.0),
         (347.5, 0.75, 1.8),
     ]
-    # a third grid on draw 10 (the bar failed it at 1000, ended it at 2000): as at 2000
+    # a third grid for the bar on draw 10 (it failed it at 1000, ended it at 2000): as at 2000;
+    # and on draw 06 (ended at 1000, failed at 2000): ended, as at 1000
     finest = results / "atp_resolved_timing_4000" / "atp_resolved_timing_convergence.csv"
-    [row_4000] = csv.DictReader(finest.open())
-    [row_2000] = [r for r in rows if r["policy"] == "every5from4" and r["seed"] == row_4000["seed"]]
+    bar_4000 = {int(r["seed"]) % 1000: r for r in csv.DictReader(finest.open())}
+    assert sorted(bar_4000) == [6, 10] and {r["cells"] for r in bar_4000.values()} == {"4000"}
+    [row_2000] = [r for r in rows if r["policy"] == "every5from4" and r["seed"] == "1000000010"]
     keys = ("policy", "seed", "return", "success", "shocks", "length")
-    assert [row_4000[k] for k in keys] == [row_2000[k] for k in keys]
-    assert (row_4000["cells"], row_4000["seed"], row_4000["return"]) == (
-        "4000",
-        "1000000010",
-        "447.0",
-    )
+    assert [bar_4000[10][k] for k in keys] == [row_2000[k] for k in keys]
+    assert bar_4000[10]["return"] == "447.0"
+    outcome = [bar_4000[6][k] for k in ("return", "success", "shocks", "length")]
+    assert outcome == ["447.0", "1.0", "3", "15"]  # ended: at 1000 446.0, at 2000 -30.0
     # and G2's on draws 10 (it ended it at 1000, failed it at 2000) and 14 (failed, then
     # ended): as at 2000
     g2_4000 = read_per_policy(finest.parent / "atp_resolved_timing_gpu_agent_eval_4000.csv")
