@@ -183,18 +183,17 @@ class Neighbours:
 class Logistic:
     """p(x) = sigmoid(f(x)), f linear (``hidden`` = 0) or two tanh layers of ``hidden`` units,
     fitted to the labels by the mean binary cross-entropy (full batch, Adam, weight decay
-    1e-4, 300 steps; inputs standardised as :class:`Neighbours`'; torch's generator seeded)."""
+    1e-4, 300 steps; inputs standardised as :class:`Neighbours`'; initial weights from seed 0,
+    the caller's torch generator left as it was)."""
 
     def __init__(self, x: np.ndarray, y: np.ndarray, hidden: int, steps: int = 300):
         self.mean, self.scale = x.mean(0), x.std(0) + 1e-9
-        torch.manual_seed(0)
-        size = x.shape[1]
-        if hidden:
-            layers = [torch.nn.Linear(size, hidden), torch.nn.Tanh()]
-            layers += [torch.nn.Linear(hidden, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, 1)]
-            self.f = torch.nn.Sequential(*layers).double()
-        else:
-            self.f = torch.nn.Linear(size, 1).double()
+        widths = [x.shape[1], hidden, hidden, 1] if hidden else [x.shape[1], 1]
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            linear = [torch.nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:], strict=True)]
+        layers = [module for layer in linear[:-1] for module in (layer, torch.nn.Tanh())]
+        self.f = torch.nn.Sequential(*layers, linear[-1]).double()
         optimizer = torch.optim.Adam(self.f.parameters(), lr=1e-2, weight_decay=1e-4)
         inputs, labels = self._standardised(x), torch.from_numpy(y)
         for _ in range(steps):
