@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.nn import Tanh
+from torchrl.modules import MLP
 
 from physicsrl import builders
 from physicsrl.cli.train import train_config
@@ -156,44 +158,50 @@ def compare_features(out: Path) -> None:
     lines = [f"{shlex.join(['python', *sys.argv])}", provenance()]
     lines.append(f"{len(x)} labelled draws; hindsight best single shock: {y.max(1).mean():.1%}")
     for name, inputs in FEATURE_SETS.items():
-        k, theta, success = choose(inputs(readings, step), y, never)
+        x = inputs(readings, step)
+        k, theta, success = choose(x, y, never)
         lines.append(f"{name}: {success:.1%} (neighbours {k}, theta {theta})")
         print(lines[-1], flush=True)
-        for estimate in ESTIMATES.items():
-            _, theta, success = choose(inputs(readings, step), y, never, dict([estimate]))
-            lines.append(f"{name}, {estimate[0]}: {success:.1%} (theta {theta})")
+        for label, estimate in ESTIMATES.items():
+            _, theta, success = choose(x, y, never, {label: estimate})
+            lines.append(f"{name}, {label}: {success:.1%} (theta {theta})")
             print(lines[-1], flush=True)
     (out / "atp_shock_timing_features.txt").write_text("\n".join(lines) + "\n")
 
 
+def standardiser(x: np.ndarray):
+    """z(points) = (points - mean) / deviation, of the labelled points ``x`` (rows)."""
+    mean, scale = x.mean(0), x.std(0) + 1e-9
+    return lambda points: (np.atleast_2d(points) - mean) / scale
+
+
 class Neighbours:
     """p(x) = the fraction of successes among the ``k`` labelled points nearest to x
-    (Euclidean, after standardising with the labelled points' mean and deviation)."""
+    (Euclidean, after :func:`standardiser`)."""
 
     def __init__(self, x: np.ndarray, y: np.ndarray, k: int):
-        self.mean, self.scale = x.mean(0), x.std(0) + 1e-9
-        self.x, self.y, self.k = (x - self.mean) / self.scale, y, k
+        self.z = standardiser(x)
+        self.x, self.y, self.k = self.z(x), y, k
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        z = (np.atleast_2d(x) - self.mean) / self.scale
+        z = self.z(x)
         distances = ((z[:, None] - self.x[None]) ** 2).sum(-1)
         return self.y[np.argsort(distances, 1)[:, : self.k]].mean(1)
 
 
 class Logistic:
-    """p(x) = sigmoid(f(x)), f linear (``hidden`` = 0) or two tanh layers of ``hidden`` units,
-    fitted to the labels by the mean binary cross-entropy (full batch, Adam, weight decay
-    1e-4, 300 steps; inputs standardised as :class:`Neighbours`'; initial weights from seed 0,
-    the caller's torch generator left as it was)."""
+    """p(x) = sigmoid(f(x)), f linear (``hidden`` = 0) or TorchRL's ``MLP`` of two tanh layers
+    of ``hidden`` units, fitted to the labels by the mean binary cross-entropy (full batch,
+    Adam, weight decay 1e-4, 300 steps; inputs after :func:`standardiser`; initial weights
+    from seed 0, the caller's torch generator left as it was)."""
 
     def __init__(self, x: np.ndarray, y: np.ndarray, hidden: int, steps: int = 300):
-        self.mean, self.scale = x.mean(0), x.std(0) + 1e-9
-        widths = [x.shape[1], hidden, hidden, 1] if hidden else [x.shape[1], 1]
+        self.z = standardiser(x)
+        cells = [hidden, hidden] if hidden else []
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)
-            linear = [torch.nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:], strict=True)]
-        layers = [module for layer in linear[:-1] for module in (layer, torch.nn.Tanh())]
-        self.f = torch.nn.Sequential(*layers, linear[-1]).double()
+            f = MLP(in_features=x.shape[1], out_features=1, num_cells=cells, activation_class=Tanh)
+        self.f = f.double()
         optimizer = torch.optim.Adam(self.f.parameters(), lr=1e-2, weight_decay=1e-4)
         inputs, labels = self._standardised(x), torch.from_numpy(y)
         for _ in range(steps):
@@ -203,7 +211,7 @@ class Logistic:
             optimizer.step()
 
     def _standardised(self, x: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy((np.atleast_2d(x) - self.mean) / self.scale)
+        return torch.from_numpy(self.z(x))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
