@@ -22,8 +22,10 @@ setup: $(STAMP)  ## create .venv (Python 3.12) and install physicsrl editable wi
 train: setup  ## train DQN on the heat task on 2 MPI ranks and print the summary
 	$(BIN)/physicsrl-train mpi.ranks=2
 
+# make test's workers (pytest-xdist), each taking whole test files; 2 fill a 2-core machine
+TEST_WORKERS ?= 2
 test: setup  ## run the test suite (unit and MPI tests; the slowest results rows: test-resolved)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 test-resolved: setup  ## the results rows that take minutes on 2 ranks (1000 x 1000, the timing agent's 20 draws) or repeat a kind make test checks (~14 min)
 	$(BIN)/python -m pytest -m 'resolved or slow'

@@ -12,6 +12,12 @@ from pathlib import Path
 
 import pytest
 
+# One OpenMP thread per process, in this process (set before anything imports torch) and in
+# every command and MPI rank it starts, as for any MPI code: make test runs two test files at
+# once on two cores (pytest-xdist), and threads that wait on each other for a core only slow
+# both.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 MPIEXEC = Path(sys.executable).with_name("mpiexec")
 
 # A small ATP task: 20 x 20 cells, intervals of 5 time units, 3 decisions + 2 extra waits
