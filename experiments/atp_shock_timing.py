@@ -3,6 +3,7 @@
     python experiments/atp_shock_timing.py label --draws 96     # ~2 core-hours
     python experiments/atp_shock_timing.py fit                  # a few minutes
     python experiments/atp_shock_timing.py features             # seconds
+    python experiments/atp_shock_timing.py second               # ~200 episodes
 
 The timing variant (``+experiment=atp_timing``) on the bar's simulator (torch, float32,
 compiled). ``label``: for draws outside the held-out seeds (seeds 2000000000, 2000000001, ...),
@@ -26,6 +27,11 @@ labelled draws.
 (:data:`FEATURE_SETS`: the readings alone, and with the previous decision's readings) and other
 estimates of P(y = 1 | x) than the neighbours' (:class:`Logistic`: a linear one and a small
 network), on the labels alone; ``atp_shock_timing_features.txt``.
+
+``second``: the draws where the shock-once policy (the reference's inputs, chosen on the labels
+as ``fit`` chooses, each draw's p from the other draws) shocks and fails, and on each of them
+a second shock at each later decision: whether it ends the arrhythmia. With hindsight, an upper
+bound on a policy that shocks again after that failed shock; ``atp_shock_timing_second.txt``.
 """
 
 from __future__ import annotations
@@ -309,9 +315,46 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
     (out / "atp_shock_timing.txt").write_text(text)
 
 
+def second(replicas: int, out: Path, overrides: list[str]) -> None:
+    """The outcomes of a second shock at each decision after the shock-once policy's failed
+    first shocks, into ``<out>/atp_shock_timing_second.txt``."""
+    seeds, x, y, never = load_labels(out)
+    k, theta, success = choose(x, y, never)
+    p = leave_one_draw_out(x, y, partial(Neighbours, k=k))
+    first = [first_over(p[d], theta) for d in range(len(x))]
+    failed = [d for d, shot in enumerate(first) if shot >= 0 and not y[d, shot]]
+    cfg, factory = make_env(replicas, overrides)
+    later = {d: range(first[d] + 1, cfg.env.max_decisions) for d in failed}
+    jobs = [(Schedule([first[d], again]), seeds[d]) for d in failed for again in later[d]]
+    with abort_on_error(), environments(factory, 1) as env:
+        if env is None:  # another rank: its environment served the leader's episodes
+            return
+        with torch.no_grad():
+            rollouts = spread_episodes(env, jobs, MAX_STEPS)
+    ended = iter(bool(rollout["next", "success"][-1]) for rollout in rollouts)
+    lines = [shlex.join(["python", *sys.argv]), provenance()]
+    ends = round(success * len(x))
+    lines.append(
+        f"shock once (neighbours {k}, theta {theta}): ends {ends} of {len(x)} labelled draws; "
+        f"its shock fails on {len(failed)}, it never shocks on {first.count(-1)}"
+    )
+    rescued = 0
+    for d in failed:
+        again = [decision for decision in later[d] if next(ended)]
+        rescued += bool(again)
+        lines.append(f"draw {seeds[d]}: shock at {first[d]} fails; a second ends it at {again}")
+    lines.append(
+        f"a second shock ends {rescued} of the {len(failed)} (at its best decision, with "
+        f"hindsight): shocking again ends at most {ends + rescued} of {len(x)} "
+        f"({(ends + rescued) / len(x):.1%})"
+    )
+    print("\n".join(lines[2:]), flush=True)
+    (out / "atp_shock_timing_second.txt").write_text("\n".join(lines) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=("label", "fit", "features"))
+    parser.add_argument("stage", choices=("label", "fit", "features", "second"))
     parser.add_argument("--draws", type=int, default=96)
     parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit)")
     parser.add_argument("--replicas", type=int, default=100)
@@ -322,6 +365,8 @@ def main() -> None:
         label(args.draws, args.replicas, args.out, args.overrides)
     elif args.stage == "features":
         compare_features(args.out)
+    elif args.stage == "second":
+        second(args.replicas, args.out, args.overrides)
     else:
         fit(args.out, args.seeds, args.replicas, args.overrides)
 

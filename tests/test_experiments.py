@@ -827,7 +827,8 @@ def test_shock_once_runs_the_single_shock_schedule_of_its_decision():
 def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     """``label`` stores each draw's never-shock observations and its single shocks' outcomes
     (continuing where it stopped); ``fit`` evaluates the chosen policy on the held-out seeds
-    (at most one shock each) and records its command."""
+    (at most one shock each) and records its command; ``second`` names the draws where the
+    chosen policy's shock fails."""
     small = [*SMALL_ATP, "env.model.compile=false"]
     arguments = ["--replicas", "4", "--out", str(tmp_path), *small]
     run_script("atp_shock_timing.py", "label", "--draws", "4", *arguments)
@@ -851,6 +852,21 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     module = shock_timing()
     names = [[f, *(f"{f}, {e}" for e in module["ESTIMATES"])] for f in module["FEATURE_SETS"]]
     assert [line.split(":")[0] for line in lines[3:]] == sum(names, [])
+    # second: labels where every single shock works but draw 0's, so that the chosen policy
+    # shocks draw 0 at decision 0 (the others' labels say it works) and fails
+    chunk["single"] = torch.ones_like(chunk["single"])
+    chunk["single"][0] = 0
+    (tmp_path / "second" / "atp_shock_timing_labels").mkdir(parents=True)
+    torch.save(chunk, tmp_path / "second" / "atp_shock_timing_labels" / "chunk-000.pt")
+    second = ["--replicas", "4", "--out", str(tmp_path / "second"), *small]
+    run_script("atp_shock_timing.py", "second", *second)
+    lines = (tmp_path / "second" / "atp_shock_timing_second.txt").read_text().splitlines()
+    assert "its shock fails on 1, it never shocks on 0" in lines[2], lines
+    assert lines[3].startswith("draw 2000000000: shock at 0 fails; a second ends it at ")
+    ends = re.search(r"a second ends it at \[(.*)\]", lines[3]).group(1)
+    assert {int(k) for k in ends.split(",") if k} <= {1, 2}  # the decisions after the first
+    assert f"a second shock ends {int(bool(ends))} of the 1" in lines[4]
+    assert f"at most {3 + bool(ends)} of 4" in lines[4]
     # on 2 ranks: the same policy and episodes, the follower's environment serving the leader
     (tmp_path / "atp_shock_timing.csv").rename(tmp_path / "one_rank.csv")
     script = str(ROOT / "experiments" / "atp_shock_timing.py")
