@@ -1171,3 +1171,35 @@ def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
         for row, expected in zip(rows, stored, strict=False)
     ]
     assert sum(differ) <= (1 if overrides == TORCH_FLOAT32 else 0), (rows, stored)
+
+
+@pytest.mark.slow  # three 60 x 60 episodes of 24 decisions, compiled: make test-resolved
+def test_a_second_shock_ends_a_labelled_draw_where_its_table_says(tmp_path):
+    """``atp_timing_r35_labelled_draws/atp_shock_timing_second.txt``: on draw 2000000036 the
+    reference's shock at decision 0 fails, and a second shock ends the arrhythmia at the
+    decisions the line lists. Two-shock schedules from 0, rerun on 2 ranks of one replica each
+    by ``atp_baselines.py --two-shocks`` (another code path than the labels' batch of 100), end
+    it where the table says: at the first decision listed, and not at the one before."""
+    from tests.conftest import MPIEXEC
+
+    results = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
+    line = next(
+        line
+        for line in (results / "atp_shock_timing_second.txt").read_text().splitlines()
+        if line.startswith("draw 2000000036: shock at 0 fails")
+    )
+    ends = json.loads(line.split("a second ends it at ")[1])
+    tried = [ends[0] - 1, ends[0]]
+    schedules = ",".join(f"shocks at 0 and {k}" for k in tried)
+    command = [str(MPIEXEC), "-n", "2", sys.executable]
+    command += [str(ROOT / "experiments" / "atp_baselines.py"), "--experiment", "atp_timing_r35"]
+    command += ["--open-loop", "--two-shocks", ",".join(str(k) for k in tried)]
+    command += ["--seed-list", "2000000036", "--schedules", schedules, "--out", str(tmp_path)]
+    result = subprocess.run(
+        [*command, *TORCH_FLOAT32], capture_output=True, text=True, timeout=600, cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr
+    rows = list(csv.DictReader((tmp_path / "atp_timing_r35_two_shocks_per_seed.csv").open()))
+    assert {row["policy"]: float(row["success"]) for row in rows} == {
+        f"shocks at 0 and {k}": float(k in ends) for k in tried
+    }
