@@ -237,6 +237,11 @@ def first_over(p: np.ndarray, theta: float) -> int:
     return int(over[0]) if len(over) else -1
 
 
+def first_shocks(p: np.ndarray, theta: float) -> list[int]:
+    """Each draw's decision of the policy's one shock (:func:`first_over` of its row of p)."""
+    return [first_over(row, theta) for row in p]
+
+
 def leave_one_draw_out(x: np.ndarray, y: np.ndarray, estimate) -> np.ndarray:
     """(draws, decisions): p of each labelled draw's points from the other draws' labels
     (x: (draws, decisions, features), NaN where not seen; y: (draws, decisions); ``estimate``:
@@ -252,7 +257,7 @@ def leave_one_draw_out(x: np.ndarray, y: np.ndarray, estimate) -> np.ndarray:
 def outcomes(p: np.ndarray, y: np.ndarray, never: np.ndarray, theta: float) -> np.ndarray:
     """(draws,): whether the policy that shocks once, at the first decision with p > theta,
     ends each draw (``never``: the draw's outcome without a shock)."""
-    shots = [first_over(p[d], theta) for d in range(len(p))]
+    shots = first_shocks(p, theta)
     return np.array([y[d, s] if s >= 0 else never[d] for d, s in enumerate(shots)])
 
 
@@ -319,9 +324,9 @@ def second(replicas: int, out: Path, overrides: list[str]) -> None:
     """The outcomes of a second shock at each decision after the shock-once policy's failed
     first shocks, into ``<out>/atp_shock_timing_second.txt``."""
     seeds, x, y, never = load_labels(out)
-    k, theta, success = choose(x, y, never)
+    k, theta, _ = choose(x, y, never)
     p = leave_one_draw_out(x, y, partial(Neighbours, k=k))
-    first = [first_over(p[d], theta) for d in range(len(x))]
+    first = first_shocks(p, theta)
     failed = [d for d, shot in enumerate(first) if shot >= 0 and not y[d, shot]]
     cfg, factory = make_env(replicas, overrides)
     later = {d: range(first[d] + 1, cfg.env.max_decisions) for d in failed}
@@ -333,7 +338,7 @@ def second(replicas: int, out: Path, overrides: list[str]) -> None:
             rollouts = spread_episodes(env, jobs, MAX_STEPS)
     ended = iter(bool(rollout["next", "success"][-1]) for rollout in rollouts)
     lines = [shlex.join(["python", *sys.argv]), provenance()]
-    ends = round(success * len(x))
+    ends = int(outcomes(p, y, never, theta).sum())
     lines.append(
         f"shock once (neighbours {k}, theta {theta}): ends {ends} of {len(x)} labelled draws; "
         f"its shock fails on {len(failed)}, it never shocks on {first.count(-1)}"
