@@ -1102,6 +1102,18 @@ TORCH_FLOAT32 = ["env.model.backend=torch", "env.replicas=1", "env.model.compile
 TORCH_FLOAT32 += ["env.model.dtype=float32"]
 
 
+def open_loop(out: Path, experiment: str, *options: str) -> None:
+    """``atp_baselines.py --experiment <experiment> --open-loop *options`` on 2 MPI ranks, its
+    files in ``out``."""
+    from tests.conftest import MPIEXEC
+
+    command = [str(MPIEXEC), "-n", "2", sys.executable]
+    command += [str(ROOT / "experiments" / "atp_baselines.py"), "--experiment", experiment]
+    command += ["--open-loop", "--out", str(out), *options]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=1200, cwd=out)
+    assert result.returncode == 0, result.stderr
+
+
 @pytest.mark.parametrize(
     "experiment, schedule, draws, overrides, suffix",
     [
@@ -1147,16 +1159,11 @@ def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
     the resolved one's (1000 x 1000, ~4 min here) run with ``make test-resolved``, as does the
     resolved bar's schedule, whose rows came from a GPU (``_cuda``: torch, float32), here
     recomputed with DOLFINx in float64."""
-    from tests.conftest import MPIEXEC
-
     results = ROOT / "experiments" / "results"
-    command = [str(MPIEXEC), "-n", "2", sys.executable]
-    command += [str(ROOT / "experiments" / "atp_baselines.py"), "--experiment", experiment]
     seeds = draw_seeds(draws)
-    command += ["--open-loop", "--seed-list", ",".join(seeds), "--out", str(tmp_path)]
-    command += ["--schedules", schedule, *overrides]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=1200, cwd=tmp_path)
-    assert result.returncode == 0, result.stderr
+    open_loop(
+        tmp_path, experiment, "--seed-list", ",".join(seeds), "--schedules", schedule, *overrides
+    )
     rows = list(csv.DictReader((tmp_path / f"{experiment}_open_loop_per_seed.csv").open()))
     table = results / f"{experiment}_open_loop{suffix}_per_seed.csv"
     stored = [
@@ -1173,15 +1180,13 @@ def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
     assert sum(differ) <= (1 if overrides == TORCH_FLOAT32 else 0), (rows, stored)
 
 
-@pytest.mark.slow  # three 60 x 60 episodes of 24 decisions, compiled: make test-resolved
+@pytest.mark.slow  # two 60 x 60 episodes of 24 decisions, compiled: make test-resolved
 def test_a_second_shock_ends_a_labelled_draw_where_its_table_says(tmp_path):
     """``atp_timing_r35_labelled_draws/atp_shock_timing_second.txt``: on draw 2000000036 the
     reference's shock at decision 0 fails, and a second shock ends the arrhythmia at the
     decisions the line lists. Two-shock schedules from 0, rerun on 2 ranks of one replica each
     by ``atp_baselines.py --two-shocks`` (another code path than the labels' batch of 100), end
     it where the table says: at the first decision listed, and not at the one before."""
-    from tests.conftest import MPIEXEC
-
     results = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
     line = next(
         line
@@ -1191,14 +1196,8 @@ def test_a_second_shock_ends_a_labelled_draw_where_its_table_says(tmp_path):
     ends = json.loads(line.split("a second ends it at ")[1])
     tried = [ends[0] - 1, ends[0]]
     schedules = ",".join(f"shocks at 0 and {k}" for k in tried)
-    command = [str(MPIEXEC), "-n", "2", sys.executable]
-    command += [str(ROOT / "experiments" / "atp_baselines.py"), "--experiment", "atp_timing_r35"]
-    command += ["--open-loop", "--two-shocks", ",".join(str(k) for k in tried)]
-    command += ["--seed-list", "2000000036", "--schedules", schedules, "--out", str(tmp_path)]
-    result = subprocess.run(
-        [*command, *TORCH_FLOAT32], capture_output=True, text=True, timeout=600, cwd=tmp_path
-    )
-    assert result.returncode == 0, result.stderr
+    gaps = ["--two-shocks", ",".join(str(k) for k in tried), "--schedules", schedules]
+    open_loop(tmp_path, "atp_timing_r35", *gaps, "--seed-list", "2000000036", *TORCH_FLOAT32)
     rows = list(csv.DictReader((tmp_path / "atp_timing_r35_two_shocks_per_seed.csv").open()))
     assert {row["policy"]: float(row["success"]) for row in rows} == {
         f"shocks at 0 and {k}": float(k in ends) for k in tried
