@@ -4,6 +4,7 @@
     python experiments/atp_shock_timing.py fit                  # a few minutes
     python experiments/atp_shock_timing.py features             # seconds
     python experiments/atp_shock_timing.py second               # ~200 episodes
+    python experiments/atp_shock_timing.py second --first 0     # ~1,000 episodes
 
 The timing variant (``+experiment=atp_timing``) on the bar's simulator (torch, float32,
 compiled). ``label``: for draws outside the held-out seeds (seeds 2000000000, 2000000001, ...),
@@ -29,9 +30,11 @@ estimates of P(y = 1 | x) than the neighbours' (:class:`Logistic`: a linear one 
 network), on the labels alone; ``atp_shock_timing_features.txt``.
 
 ``second``: the draws where the shock-once policy (the reference's inputs, chosen on the labels
-as ``fit`` chooses, each draw's p from the other draws) shocks and fails, and on each of them
-a second shock at each later decision: whether it ends the arrhythmia. With hindsight, an upper
-bound on a policy that shocks again after that failed shock; ``atp_shock_timing_second.txt``.
+as ``fit`` chooses, each draw's p from the other draws) shocks and fails, or with ``--first D``
+those where a shock at decision D fails, and on each of them a second shock at each later
+decision: whether it ends the arrhythmia. With hindsight, an upper bound on a policy that shocks
+again after that failed shock; and, chosen as ``fit`` chooses, a rule that times the second shock
+from the readings after the failed one (``atp_shock_timing_second[_atD].txt``).
 """
 
 from __future__ import annotations
@@ -320,41 +323,70 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
     (out / "atp_shock_timing.txt").write_text(text)
 
 
-def second(replicas: int, out: Path, overrides: list[str]) -> None:
-    """The outcomes of a second shock at each decision after the shock-once policy's failed
-    first shocks, into ``<out>/atp_shock_timing_second.txt``."""
+def second(replicas: int, out: Path, overrides: list[str], first_at: int | None = None) -> None:
+    """The outcomes of a second shock at each decision after failed first shocks: the shock-once
+    policy's (``first_at`` None; into ``<out>/atp_shock_timing_second.txt``), or a shock at
+    decision ``first_at`` on every draw (``atp_shock_timing_second_at<first_at>.txt``). With
+    hindsight (the second shock at its best decision) an upper bound on a policy that shocks
+    again after a failed shock; and the same leave-one-draw-out choice as ``fit``'s, among the
+    draws whose first shock failed, of a rule that times the second shock from the readings
+    after the failed one."""
     seeds, x, y, never = load_labels(out)
-    k, theta, _ = choose(x, y, never)
-    p = leave_one_draw_out(x, y, partial(Neighbours, k=k))
-    first = first_shocks(p, theta)
+    if first_at is None:
+        k, theta, _ = choose(x, y, never)
+        p = leave_one_draw_out(x, y, partial(Neighbours, k=k))
+        first = first_shocks(p, theta)
+        ends = int(outcomes(p, y, never, theta).sum())
+        policy = f"shock once (neighbours {k}, theta {theta})"
+    else:
+        first, ends = [first_at] * len(x), int(y[:, first_at].sum())
+        policy = f"a shock at decision {first_at}"
     failed = [d for d, shot in enumerate(first) if shot >= 0 and not y[d, shot]]
     cfg, factory = make_env(replicas, overrides)
-    later = {d: range(first[d] + 1, cfg.env.max_decisions) for d in failed}
+    decisions = cfg.env.max_decisions
+    later = {d: range(first[d] + 1, decisions) for d in failed}
     jobs = [(Schedule([first[d], again]), seeds[d]) for d in failed for again in later[d]]
     with abort_on_error(), environments(factory, 1) as env:
         if env is None:  # another rank: its environment served the leader's episodes
             return
         with torch.no_grad():
-            rollouts = spread_episodes(env, jobs, MAX_STEPS)
-    ended = iter(bool(rollout["next", "success"][-1]) for rollout in rollouts)
+            rollouts = iter(spread_episodes(env, jobs, MAX_STEPS))
+    # per failed draw, at each later decision k: the readings there (the episode's before its
+    # second shock at k) and whether that second shock ends the arrhythmia
+    readings = np.full((len(failed), decisions, x.shape[-1] - 1), np.nan)
+    y2 = np.zeros((len(failed), decisions))
+    for i, d in enumerate(failed):
+        for again in later[d]:
+            rollout = next(rollouts)
+            readings[i, again] = rollout["observation"][again].double().numpy()
+            y2[i, again] = float(rollout["next", "success"][-1])
     lines = [shlex.join(["python", *sys.argv]), provenance()]
-    ends = int(outcomes(p, y, never, theta).sum())
     lines.append(
-        f"shock once (neighbours {k}, theta {theta}): ends {ends} of {len(x)} labelled draws; "
-        f"its shock fails on {len(failed)}, it never shocks on {first.count(-1)}"
+        f"{policy}: ends {ends} of {len(x)} labelled draws; its shock fails on {len(failed)}, "
+        f"it never shocks on {first.count(-1)}"
     )
-    rescued = 0
-    for d in failed:
-        again = [decision for decision in later[d] if next(ended)]
-        rescued += bool(again)
+    for i, d in enumerate(failed):
+        again = [int(k) for k in np.flatnonzero(y2[i])]
         lines.append(f"draw {seeds[d]}: shock at {first[d]} fails; a second ends it at {again}")
+    rescued = int(y2.max(1, initial=0).sum())
     lines.append(
         f"a second shock ends {rescued} of the {len(failed)} (at its best decision, with "
         f"hindsight): shocking again ends at most {ends + rescued} of {len(x)} "
         f"({(ends + rescued) / len(x):.1%})"
     )
+    if len(failed) > 1:
+        x2, none = features(readings), np.zeros(len(failed))
+        k2, theta2, _ = choose(x2, y2, none)
+        p2 = leave_one_draw_out(x2, y2, partial(Neighbours, k=k2))
+        timed = int(outcomes(p2, y2, none, theta2).sum())
+        lines.append(
+            f"timed from the readings after the failed shock (neighbours {k2}, theta {theta2}, "
+            f"each draw's from the other {len(failed) - 1}): a second shock ends {timed}; "
+            f"{ends + timed} of {len(x)} ({(ends + timed) / len(x):.1%})"
+        )
     print("\n".join(lines[2:]), flush=True)
-    (out / "atp_shock_timing_second.txt").write_text("\n".join(lines) + "\n")
+    name = "second" if first_at is None else f"second_at{first_at}"
+    (out / f"atp_shock_timing_{name}.txt").write_text("\n".join(lines) + "\n")
 
 
 def main() -> None:
@@ -363,6 +395,9 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=96)
     parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit)")
     parser.add_argument("--replicas", type=int, default=100)
+    parser.add_argument(
+        "--first", type=int, help="second: the first shock at this decision on every draw"
+    )
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
     args = parser.parse_intermixed_args()
@@ -371,7 +406,7 @@ def main() -> None:
     elif args.stage == "features":
         compare_features(args.out)
     elif args.stage == "second":
-        second(args.replicas, args.out, args.overrides)
+        second(args.replicas, args.out, args.overrides, args.first)
     else:
         fit(args.out, args.seeds, args.replicas, args.overrides)
 
