@@ -828,7 +828,8 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     """``label`` stores each draw's never-shock observations and its single shocks' outcomes
     (continuing where it stopped); ``fit`` evaluates the chosen policy on the held-out seeds
     (at most one shock each) and records its command; ``second`` names the draws where the
-    chosen policy's shock fails."""
+    chosen policy's shock fails, and with ``--first 0`` those where a shock at 0 fails, with
+    the rule timing a second shock from the readings after it."""
     small = [*SMALL_ATP, "env.model.compile=false"]
     arguments = ["--replicas", "4", "--out", str(tmp_path), *small]
     run_script("atp_shock_timing.py", "label", "--draws", "4", *arguments)
@@ -867,6 +868,27 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     assert {int(k) for k in ends.split(",") if k} <= {1, 2}  # the decisions after the first
     assert f"a second shock ends {int(bool(ends))} of the 1" in lines[4]
     assert f"at most {3 + bool(ends)} of 4" in lines[4]
+    # second --first 0: after a shock at 0 on every draw, which fails on draws 0 and 1
+    chunk["single"][1] = 0
+    torch.save(chunk, tmp_path / "second" / "atp_shock_timing_labels" / "chunk-000.pt")
+    run_script("atp_shock_timing.py", "second", "--first", "0", *second)
+    lines = (tmp_path / "second" / "atp_shock_timing_second_at0.txt").read_text().splitlines()
+    assert lines[2] == (
+        "a shock at decision 0: ends 2 of 4 labelled draws; its shock fails on 2, "
+        "it never shocks on 0"
+    )
+    rescued = 0
+    for draw, line in zip((2_000_000_000, 2_000_000_001), lines[3:5], strict=True):
+        assert line.startswith(f"draw {draw}: shock at 0 fails; a second ends it at "), line
+        ends = re.search(r"a second ends it at \[(.*)\]", line).group(1)
+        assert {int(k) for k in ends.split(",") if k} <= {1, 2}
+        rescued += bool(ends)
+    assert f"a second shock ends {rescued} of the 2" in lines[5]
+    assert f"at most {2 + rescued} of 4" in lines[5]
+    timed = int(
+        re.search(r"each draw's from the other 1\): a second shock ends (\d+);", lines[6])[1]
+    )
+    assert timed <= rescued and f"; {2 + timed} of 4" in lines[6]
     # on 2 ranks: the same policy and episodes, the follower's environment serving the leader
     (tmp_path / "atp_shock_timing.csv").rename(tmp_path / "one_rank.csv")
     script = str(ROOT / "experiments" / "atp_shock_timing.py")
