@@ -34,7 +34,8 @@ as ``fit`` chooses, each draw's p from the other draws) shocks and fails, or wit
 those where a shock at decision D fails, and on each of them a second shock at each later
 decision: whether it ends the arrhythmia. With hindsight, an upper bound on a policy that shocks
 again after that failed shock; and, chosen as ``fit`` chooses, a rule that times the second shock
-from the readings after the failed one (``atp_shock_timing_second[_atD].txt``).
+from the readings after the failed one, run on the held-out seeds
+(``atp_shock_timing_second[_atD].txt``, ``.csv``, and the second shocks' labels in ``.pt``).
 """
 
 from __future__ import annotations
@@ -323,77 +324,118 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
     (out / "atp_shock_timing.txt").write_text(text)
 
 
-def second(replicas: int, out: Path, overrides: list[str], first_at: int | None = None) -> None:
+class ShockAgain(Policy):
+    """The ``first`` policy until it shocks, then :class:`ShockOnce`'s second shock at the first
+    later decision where ``p(observation, decision) > theta``; one object per episode."""
+
+    def __init__(self, first: Policy, p, theta: float):
+        self.first, self.again, self.shocked = first, ShockOnce(p, theta), False
+
+    def action(self, tensordict):
+        if self.shocked:
+            return self.again.action(tensordict)
+        self.shocked = bool(self.first.action(tensordict))
+        return int(self.shocked)
+
+
+def second(
+    replicas: int, out: Path, overrides: list[str], first_at: int | None = None, held_out: int = 20
+) -> None:
     """The outcomes of a second shock at each decision after failed first shocks: the shock-once
-    policy's (``first_at`` None; into ``<out>/atp_shock_timing_second.txt``), or a shock at
-    decision ``first_at`` on every draw (``atp_shock_timing_second_at<first_at>.txt``). With
+    policy's (``first_at`` None), or a shock at decision ``first_at`` on every draw. With
     hindsight (the second shock at its best decision) an upper bound on a policy that shocks
-    again after a failed shock; and the same leave-one-draw-out choice as ``fit``'s, among the
-    draws whose first shock failed, of a rule that times the second shock from the readings
-    after the failed one."""
+    again after a failed shock; then the same leave-one-draw-out choice as ``fit``'s, among the
+    draws whose first shock failed, of a rule timing the second shock from the readings after
+    the failed one, and that policy (:class:`ShockAgain`, fitted on every labelled draw) on
+    ``held_out`` held-out seeds. Into ``<out>/atp_shock_timing_second[_at<first_at>]``: ``.pt``
+    (the second shocks' readings and outcomes; an existing one is read, not rerun), ``.txt``
+    and ``.csv`` (per held-out seed)."""
     seeds, x, y, never = load_labels(out)
+    seen = ~np.isnan(x[..., 0])
     if first_at is None:
         k, theta, _ = choose(x, y, never)
         p = leave_one_draw_out(x, y, partial(Neighbours, k=k))
-        first = first_shocks(p, theta)
-        ends = int(outcomes(p, y, never, theta).sum())
+        first, ends = first_shocks(p, theta), int(outcomes(p, y, never, theta).sum())
         policy = f"shock once (neighbours {k}, theta {theta})"
+        first_policy = partial(ShockOnce, Neighbours(x[seen], y[seen], k), theta)
     else:
         first, ends = [first_at] * len(x), int(y[:, first_at].sum())
         policy = f"a shock at decision {first_at}"
+        first_policy = partial(Schedule, [first_at])
     failed = [d for d, shot in enumerate(first) if shot >= 0 and not y[d, shot]]
+    path = out / ("atp_shock_timing_second" + ("" if first_at is None else f"_at{first_at}"))
     cfg, factory = make_env(replicas, overrides)
     decisions = cfg.env.max_decisions
     later = {d: range(first[d] + 1, decisions) for d in failed}
-    jobs = [(Schedule([first[d], again]), seeds[d]) for d in failed for again in later[d]]
     with abort_on_error(), environments(factory, 1) as env:
         if env is None:  # another rank: its environment served the leader's episodes
             return
-        with torch.no_grad():
-            rollouts = iter(spread_episodes(env, jobs, MAX_STEPS))
-    # per failed draw, at each later decision k: the readings there (the episode's before its
-    # second shock at k) and whether that second shock ends the arrhythmia
-    readings = np.full((len(failed), decisions, x.shape[-1] - 1), np.nan)
-    y2 = np.zeros((len(failed), decisions))
-    for i, d in enumerate(failed):
-        for again in later[d]:
-            rollout = next(rollouts)
-            readings[i, again] = rollout["observation"][again].double().numpy()
-            y2[i, again] = float(rollout["next", "success"][-1])
-    lines = [shlex.join(["python", *sys.argv]), provenance()]
-    lines.append(
-        f"{policy}: ends {ends} of {len(x)} labelled draws; its shock fails on {len(failed)}, "
-        f"it never shocks on {first.count(-1)}"
-    )
-    for i, d in enumerate(failed):
-        again = [int(k) for k in np.flatnonzero(y2[i])]
-        lines.append(f"draw {seeds[d]}: shock at {first[d]} fails; a second ends it at {again}")
-    rescued = int(y2.max(1, initial=0).sum())
-    lines.append(
-        f"a second shock ends {rescued} of the {len(failed)} (at its best decision, with "
-        f"hindsight): shocking again ends at most {ends + rescued} of {len(x)} "
-        f"({(ends + rescued) / len(x):.1%})"
-    )
-    if len(failed) > 1:
-        x2, none = features(readings), np.zeros(len(failed))
-        k2, theta2, _ = choose(x2, y2, none)
-        p2 = leave_one_draw_out(x2, y2, partial(Neighbours, k=k2))
-        timed = int(outcomes(p2, y2, none, theta2).sum())
+        if not path.with_suffix(".pt").exists():
+            jobs = [(Schedule([first[d], k]), seeds[d]) for d in failed for k in later[d]]
+            with torch.no_grad():
+                rollouts = iter(spread_episodes(env, jobs, MAX_STEPS))
+            # per failed draw, at each later decision k: the readings there (the episode's
+            # before its second shock at k) and whether that second shock ends the arrhythmia
+            readings = torch.full((len(failed), decisions, x.shape[-1] - 1), float("nan"))
+            y2 = torch.zeros(len(failed), decisions)
+            for i, d in enumerate(failed):
+                for k in later[d]:
+                    rollout = next(rollouts)
+                    readings[i, k] = rollout["observation"][k]
+                    y2[i, k] = float(rollout["next", "success"][-1])
+            labels = {"seeds": [seeds[d] for d in failed], "readings": readings, "second": y2}
+            torch.save(labels, path.with_suffix(".pt"))
+        labels = torch.load(path.with_suffix(".pt"))
+        if labels["seeds"] != [seeds[d] for d in failed]:
+            raise ValueError(f"{path.with_suffix('.pt')} holds other draws: move it away to rerun")
+        x2, y2 = features(labels["readings"].double().numpy()), labels["second"].double().numpy()
+        lines = [shlex.join(["python", *sys.argv]), provenance()]
         lines.append(
-            f"timed from the readings after the failed shock (neighbours {k2}, theta {theta2}, "
-            f"each draw's from the other {len(failed) - 1}): a second shock ends {timed}; "
-            f"{ends + timed} of {len(x)} ({(ends + timed) / len(x):.1%})"
+            f"{policy}: ends {ends} of {len(x)} labelled draws; its shock fails on "
+            f"{len(failed)}, it never shocks on {first.count(-1)}"
         )
+        for i, d in enumerate(failed):
+            again = [int(k) for k in np.flatnonzero(y2[i])]
+            lines.append(f"draw {seeds[d]}: shock at {first[d]} fails; a second ends it at {again}")
+        rescued = int(y2.max(1, initial=0).sum())
+        lines.append(
+            f"a second shock ends {rescued} of the {len(failed)} (at its best decision, with "
+            f"hindsight): shocking again ends at most {ends + rescued} of {len(x)} "
+            f"({(ends + rescued) / len(x):.1%})"
+        )
+        if len(failed) > 1:
+            none, seen2 = np.zeros(len(failed)), ~np.isnan(x2[..., 0])
+            k2, theta2, _ = choose(x2, y2, none)
+            p2 = leave_one_draw_out(x2, y2, partial(Neighbours, k=k2))
+            timed = int(outcomes(p2, y2, none, theta2).sum())
+            lines.append(
+                f"timed from the readings after the failed shock (neighbours {k2}, theta "
+                f"{theta2}, each draw's from the other {len(failed) - 1}): a second shock ends "
+                f"{timed}; {ends + timed} of {len(x)} ({(ends + timed) / len(x):.1%})"
+            )
+            again = Neighbours(x2[seen2], y2[seen2], k2)
+            jobs = [
+                (ShockAgain(first_policy(), again, theta2), s) for s in held_out_seeds(held_out)
+            ]
+            rows = run_jobs(env, jobs, {"shocks": 1})
+            means = mean_metrics(rows)
+            lines.append(
+                f"that policy, fitted on every labelled draw, on {held_out} held-out seeds: "
+                f"return {means['return']:.2f}, success {means['success']:.0%}, "
+                f"shocks {means['shocks']:.2f}"
+            )
+            write_csv(
+                path.with_suffix(".csv"), [{"policy": "shock again (k-NN)", **r} for r in rows]
+            )
     print("\n".join(lines[2:]), flush=True)
-    name = "second" if first_at is None else f"second_at{first_at}"
-    (out / f"atp_shock_timing_{name}.txt").write_text("\n".join(lines) + "\n")
+    path.with_suffix(".txt").write_text("\n".join(lines) + "\n")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stage", choices=("label", "fit", "features", "second"))
     parser.add_argument("--draws", type=int, default=96)
-    parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit)")
+    parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit, second)")
     parser.add_argument("--replicas", type=int, default=100)
     parser.add_argument(
         "--first", type=int, help="second: the first shock at this decision on every draw"
@@ -406,7 +448,7 @@ def main() -> None:
     elif args.stage == "features":
         compare_features(args.out)
     elif args.stage == "second":
-        second(args.replicas, args.out, args.overrides, args.first)
+        second(args.replicas, args.out, args.overrides, args.first, args.seeds)
     else:
         fit(args.out, args.seeds, args.replicas, args.overrides)
 
