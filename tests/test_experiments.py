@@ -808,7 +808,8 @@ def test_shock_timing_choice_finds_a_rule_the_readings_show():
 def test_shock_once_runs_the_single_shock_schedule_of_its_decision():
     """The policy of ``atp_shock_timing.py`` (one shock at the first decision where p > theta,
     one object per episode) gives the episodes of the open-loop single shock at that decision:
-    the same rows, one shock each, on two held-out seeds and 2 replicas."""
+    the same rows, one shock each, on two held-out seeds and 2 replicas; ``ShockAgain`` after a
+    shock at 0 gives those of the two-shock schedule."""
     from physicsrl.coordinated import Coordinator
     from physicsrl.envs.baselines import Schedule
     from physicsrl.evaluation import run_jobs
@@ -822,6 +823,12 @@ def test_shock_once_runs_the_single_shock_schedule_of_its_decision():
     rows = run_jobs(env, [(policy(from_decision_1, 0.5), s) for s in seeds], {"shocks": 1})
     assert rows == run_jobs(env, [(Schedule([1]), s) for s in seeds], {"shocks": 1})
     assert [row["shocks"] for row in rows] == [1, 1]
+    # and after a first policy's shock, a second where p > theta: those of the two-shock schedule
+    from_decision_2 = lambda x: (np.atleast_2d(x)[:, -1] >= 2).astype(float)  # noqa: E731
+    again = [(module["ShockAgain"](Schedule([0]), from_decision_2, 0.5), s) for s in seeds]
+    rows = run_jobs(env, again, {"shocks": 1})
+    assert rows == run_jobs(env, [(Schedule([0, 2]), s) for s in seeds], {"shocks": 1})
+    assert [row["shocks"] for row in rows] == [2, 2]
 
 
 def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
@@ -871,7 +878,7 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     # second --first 0: after a shock at 0 on every draw, which fails on draws 0 and 1
     chunk["single"][1] = 0
     torch.save(chunk, tmp_path / "second" / "atp_shock_timing_labels" / "chunk-000.pt")
-    run_script("atp_shock_timing.py", "second", "--first", "0", *second)
+    run_script("atp_shock_timing.py", "second", "--first", "0", "--seeds", "2", *second)
     lines = (tmp_path / "second" / "atp_shock_timing_second_at0.txt").read_text().splitlines()
     assert lines[2] == (
         "a shock at decision 0: ends 2 of 4 labelled draws; its shock fails on 2, "
@@ -889,6 +896,13 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
         re.search(r"each draw's from the other 1\): a second shock ends (\d+);", lines[6])[1]
     )
     assert timed <= rescued and f"; {2 + timed} of 4" in lines[6]
+    assert lines[7].startswith("that policy, fitted on every labelled draw, on 2 held-out seeds")
+    rows = list(csv.DictReader((tmp_path / "second" / "atp_shock_timing_second_at0.csv").open()))
+    assert [int(r["seed"]) for r in rows] == held_out_seeds(2)
+    assert all(float(r["shocks"]) in (1, 2) for r in rows)  # at 0, and perhaps once more
+    labels = torch.load(tmp_path / "second" / "atp_shock_timing_second_at0.pt")
+    assert labels["seeds"] == [2_000_000_000, 2_000_000_001]
+    assert labels["readings"][:, 0].isnan().all() and not labels["readings"][:, 1:].isnan().any()
     # on 2 ranks: the same policy and episodes, the follower's environment serving the leader
     (tmp_path / "atp_shock_timing.csv").rename(tmp_path / "one_rank.csv")
     script = str(ROOT / "experiments" / "atp_shock_timing.py")
