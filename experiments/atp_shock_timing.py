@@ -347,9 +347,12 @@ def second(
     again after a failed shock; then the same leave-one-draw-out choice as ``fit``'s, among the
     draws whose first shock failed, of a rule timing the second shock from the readings after
     the failed one, and that policy (:class:`ShockAgain`, fitted on every labelled draw) on
-    ``held_out`` held-out seeds. Into ``<out>/atp_shock_timing_second[_at<first_at>]``: ``.pt``
-    (the second shocks' readings and outcomes; an existing one is read, not rerun), ``.txt``
-    and ``.csv`` (per held-out seed)."""
+    ``held_out`` held-out seeds. The rule's choice sees only the draws whose first shock failed,
+    where a policy also meets the others (a shock that works mostly ends the arrhythmia after
+    the last decision, unseen): its count is an upper bound, the held-out run the measure.
+    Into ``<out>/atp_shock_timing_second[_at<first_at>]``: ``.pt`` (the second shocks' readings
+    and outcomes; an existing one is read, not rerun), ``.txt`` and ``.csv`` (per held-out
+    seed)."""
     seeds, x, y, never = load_labels(out)
     seen = ~np.isnan(x[..., 0])
     if first_at is None:
@@ -411,7 +414,9 @@ def second(
             lines.append(
                 f"timed from the readings after the failed shock (neighbours {k2}, theta "
                 f"{theta2}, each draw's from the other {len(failed) - 1}): a second shock ends "
-                f"{timed}; {ends + timed} of {len(x)} ({(ends + timed) / len(x):.1%})"
+                f"{timed} of the {len(failed)}; at most {ends + timed} of {len(x)} "
+                f"({(ends + timed) / len(x):.1%}), counting the draws the first shock ends as "
+                "ended (the rule runs there too: a second shock can undo the first)"
             )
             again = Neighbours(x2[seen2], y2[seen2], k2)
             jobs = [
