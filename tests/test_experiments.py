@@ -1215,24 +1215,55 @@ def test_open_loop_bar_reproduces_its_rows_on_two_ranks(
 
 
 @pytest.mark.slow  # two 60 x 60 episodes of 24 decisions, compiled: make test-resolved
-def test_a_second_shock_ends_a_labelled_draw_where_its_table_says(tmp_path):
-    """``atp_timing_r35_labelled_draws/atp_shock_timing_second.txt``: on draw 2000000036 the
-    reference's shock at decision 0 fails, and a second shock ends the arrhythmia at the
-    decisions the line lists. Two-shock schedules from 0, rerun on 2 ranks of one replica each
-    by ``atp_baselines.py --two-shocks`` (another code path than the labels' batch of 100), end
-    it where the table says: at the first decision listed, and not at the one before."""
+@pytest.mark.parametrize(
+    "table, draw",
+    [
+        ("atp_shock_timing_second.txt", 2000000036),  # after the reference's shock
+        ("atp_shock_timing_second_at0.txt", 2000000082),  # after a shock at 0 on every draw
+    ],
+)
+def test_a_second_shock_ends_a_labelled_draw_where_its_table_says(tmp_path, table, draw):
+    """``atp_timing_r35_labelled_draws/<table>``: on ``draw`` the first shock, at decision 0,
+    fails, and a second shock ends the arrhythmia at the decisions the line lists. Two-shock
+    schedules from 0, rerun on 2 ranks of one replica each by ``atp_baselines.py
+    --two-shocks`` (another code path than the labels' batch of 100), end it where the table
+    says: at the first decision listed, and not at the one before."""
     results = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
     line = next(
         line
-        for line in (results / "atp_shock_timing_second.txt").read_text().splitlines()
-        if line.startswith("draw 2000000036: shock at 0 fails")
+        for line in (results / table).read_text().splitlines()
+        if line.startswith(f"draw {draw}: shock at 0 fails")
     )
     ends = json.loads(line.split("a second ends it at ")[1])
     tried = [ends[0] - 1, ends[0]]
     schedules = ",".join(f"shocks at 0 and {k}" for k in tried)
     gaps = ["--two-shocks", ",".join(str(k) for k in tried), "--schedules", schedules]
-    open_loop(tmp_path, "atp_timing_r35", *gaps, "--seed-list", "2000000036", *TORCH_FLOAT32)
+    open_loop(tmp_path, "atp_timing_r35", *gaps, "--seed-list", str(draw), *TORCH_FLOAT32)
     rows = list(csv.DictReader((tmp_path / "atp_timing_r35_two_shocks_per_seed.csv").open()))
     assert {row["policy"]: float(row["success"]) for row in rows} == {
         f"shocks at 0 and {k}": float(k in ends) for k in tried
     }
+
+
+@pytest.mark.slow  # two 60 x 60 episodes, compiled, on 2 ranks of 100 replicas: make test-resolved
+def test_shock_again_rows_come_from_the_stored_second_shocks(tmp_path):
+    """``atp_shock_timing_second_at0``: ``second --first 0`` on a copy of the labelled draws and
+    the stored second shocks (``.pt``, read, not rerun) writes the table's lines again (the
+    rules chosen on the labels), and the policy fitted there gives the stored rows of the first
+    two held-out seeds (outcome and shocks; in float32 a return may differ with the batch)."""
+    results = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
+    (tmp_path / "atp_shock_timing_labels").mkdir()
+    for chunk in (results / "atp_shock_timing_labels").glob("chunk-*.pt"):
+        (tmp_path / "atp_shock_timing_labels" / chunk.name).write_bytes(chunk.read_bytes())
+    stem = "atp_shock_timing_second_at0"
+    (tmp_path / f"{stem}.pt").write_bytes((results / f"{stem}.pt").read_bytes())
+    script = str(ROOT / "experiments" / "atp_shock_timing.py")
+    arguments = ["second", "--first", "0", "--seeds", "2", "--out", str(tmp_path)]
+    run_mpi(2, script, *arguments, "env.shock.radius=35.0", timeout=900)
+    lines = (tmp_path / f"{stem}.txt").read_text().splitlines()
+    stored = (results / f"{stem}.txt").read_text().splitlines()
+    assert lines[2:-1] == stored[2:-1]  # all but the command, the commit and the held-out line
+    rows = list(csv.DictReader((tmp_path / f"{stem}.csv").open()))
+    expected = list(csv.DictReader((results / f"{stem}.csv").open()))[:2]
+    keys = ("policy", "seed", "success", "shocks")
+    assert [[r[k] for k in keys] for r in rows] == [[r[k] for k in keys] for r in expected]
