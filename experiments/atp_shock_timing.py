@@ -338,6 +338,34 @@ class ShockAgain(Policy):
         return int(self.shocked)
 
 
+def second_shocks(env, path: Path, first: dict[int, int], decisions: int):
+    """(readings (draws, decisions, readings), outcomes (draws, decisions)) of a second shock at
+    each decision after each draw's first (``first``: seed -> the decision of its failed first
+    shock): the readings there, before the second shock, and whether it ends the arrhythmia
+    (NaN and 0 up to the first). Run once and kept in ``path``, read from there after."""
+    if not path.exists():
+        jobs = [
+            (Schedule([at, k]), seed)
+            for seed, at in first.items()
+            for k in range(at + 1, decisions)
+        ]
+        with torch.no_grad():
+            rollouts = iter(spread_episodes(env, jobs, MAX_STEPS))
+        size = env.observation_spec["observation"].shape[-1]
+        readings = torch.full((len(first), decisions, size), float("nan"))
+        y2 = torch.zeros(len(first), decisions)
+        for i, at in enumerate(first.values()):
+            for k in range(at + 1, decisions):
+                rollout = next(rollouts)
+                readings[i, k] = rollout["observation"][k]
+                y2[i, k] = float(rollout["next", "success"][-1])
+        torch.save({"seeds": list(first), "readings": readings, "second": y2}, path)
+    labels = torch.load(path)
+    if labels["seeds"] != list(first):
+        raise ValueError(f"{path} holds other draws: move it away to rerun")
+    return labels["readings"].double().numpy(), labels["second"].double().numpy()
+
+
 def second(
     replicas: int, out: Path, overrides: list[str], first_at: int | None = None, held_out: int = 20
 ) -> None:
@@ -369,29 +397,12 @@ def second(
     path = out / ("atp_shock_timing_second" + ("" if first_at is None else f"_at{first_at}"))
     cfg, factory = make_env(replicas, overrides)
     decisions = cfg.env.max_decisions
-    later = {d: range(first[d] + 1, decisions) for d in failed}
     with abort_on_error(), environments(factory, 1) as env:
         if env is None:  # another rank: its environment served the leader's episodes
             return
-        if not path.with_suffix(".pt").exists():
-            jobs = [(Schedule([first[d], k]), seeds[d]) for d in failed for k in later[d]]
-            with torch.no_grad():
-                rollouts = iter(spread_episodes(env, jobs, MAX_STEPS))
-            # per failed draw, at each later decision k: the readings there (the episode's
-            # before its second shock at k) and whether that second shock ends the arrhythmia
-            readings = torch.full((len(failed), decisions, x.shape[-1] - 1), float("nan"))
-            y2 = torch.zeros(len(failed), decisions)
-            for i, d in enumerate(failed):
-                for k in later[d]:
-                    rollout = next(rollouts)
-                    readings[i, k] = rollout["observation"][k]
-                    y2[i, k] = float(rollout["next", "success"][-1])
-            labels = {"seeds": [seeds[d] for d in failed], "readings": readings, "second": y2}
-            torch.save(labels, path.with_suffix(".pt"))
-        labels = torch.load(path.with_suffix(".pt"))
-        if labels["seeds"] != [seeds[d] for d in failed]:
-            raise ValueError(f"{path.with_suffix('.pt')} holds other draws: move it away to rerun")
-        x2, y2 = features(labels["readings"].double().numpy()), labels["second"].double().numpy()
+        failed_first = {seeds[d]: first[d] for d in failed}
+        readings, y2 = second_shocks(env, path.with_suffix(".pt"), failed_first, decisions)
+        x2 = features(readings)
         lines = [shlex.join(["python", *sys.argv]), provenance()]
         lines.append(
             f"{policy}: ends {ends} of {len(x)} labelled draws; its shock fails on "
