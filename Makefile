@@ -27,7 +27,7 @@ TEST_WORKERS ?= 2
 test: setup  ## run the test suite (unit and MPI tests; the slowest results rows: test-resolved)
 	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
-test-resolved: setup  ## the results rows that take minutes on 2 ranks (1000 x 1000, the timing agent's 20 draws) or repeat a kind make test checks (~15 min)
+test-resolved: setup  ## the results rows that take minutes on 2 ranks (1000 x 1000, the timing agent's 20 draws) or repeat a kind make test checks (~16 min)
 	$(BIN)/python -m pytest -m 'resolved or slow'
 
 SLURM := tests/slurm/local_slurm.sh
