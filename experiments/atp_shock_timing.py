@@ -447,9 +447,66 @@ def second(
     path.with_suffix(".txt").write_text("\n".join(lines) + "\n")
 
 
+def worked(replicas: int, out: Path, overrides: list[str], first_at: int) -> None:
+    """Do the catheter's readings after a shock at decision ``first_at`` tell whether it worked?
+    The readings of the draws where it works (one episode each, kept in
+    ``<out>/atp_shock_timing_worked_at<first_at>.pt``) against those where it fails (from
+    ``second --first``'s ``.pt``); at each later decision, the k-nearest-neighbour vote (k of
+    :data:`NEIGHBOURS`, the best) of each draw from the other draws still running there, and
+    how many episodes have visibly ended; into ``atp_shock_timing_worked_at<first_at>.txt``."""
+    seeds, x, y, _ = load_labels(out)
+    works = [d for d in range(len(x)) if y[d, first_at]]
+    failed = {seeds[d]: first_at for d in range(len(x)) if not y[d, first_at]}
+    path = out / f"atp_shock_timing_worked_at{first_at}.pt"
+    cfg, factory = make_env(replicas, overrides)
+    decisions = cfg.env.max_decisions
+    with abort_on_error(), environments(factory, 1) as env:
+        if env is None:  # another rank: its environment served the leader's episodes
+            return
+        if not path.exists():
+            jobs = [(Schedule([first_at]), seeds[d]) for d in works]
+            with torch.no_grad():
+                rollouts = spread_episodes(env, jobs, MAX_STEPS)
+            readings = torch.full((len(works), decisions, x.shape[-1] - 1), float("nan"))
+            for i, rollout in enumerate(rollouts):
+                seen = min(decisions, rollout.shape[0])
+                readings[i, first_at + 1 : seen] = rollout["observation"][first_at + 1 : seen]
+            torch.save({"seeds": [seeds[d] for d in works], "readings": readings}, path)
+        after_works = torch.load(path)["readings"].double().numpy()
+        after_fails, _ = second_shocks(
+            env, out / f"atp_shock_timing_second_at{first_at}.pt", failed, decisions
+        )
+    lines = [shlex.join(["python", *sys.argv]), provenance()]
+    lines.append(
+        f"a shock at decision {first_at} works on {len(works)} of {len(x)} labelled draws; at "
+        "each later decision, the draws still running and how often the readings there tell a "
+        "working shock from a failed one (each draw's vote from the other draws)"
+    )
+    readings = np.concatenate([after_works, after_fails])
+    label = np.r_[np.ones(len(after_works)), np.zeros(len(after_fails))]
+    for k in range(first_at + 1, decisions):
+        running = ~np.isnan(readings[:, k, 0])
+        points, labels = readings[running, k], label[running]
+        z = standardiser(points)(points)
+        distances = ((z[:, None] - z[None]) ** 2).sum(-1)
+        np.fill_diagonal(distances, np.inf)  # each draw left out of its own vote
+        nearest = np.argsort(distances, 1)
+        votes = {min(n, len(z) - 1) for n in NEIGHBOURS}
+        told = {n: ((labels[nearest[:, :n]].mean(1) > 0.5) == labels).mean() for n in votes}
+        n = max(told, key=told.get)
+        lines.append(
+            f"decision {k}: {int(labels.sum())} working and {int((1 - labels).sum())} failed "
+            f"still running ({len(works) - int(labels.sum())} ended); told apart on "
+            f"{told[n]:.0%} (neighbours {n}; the larger group alone: "
+            f"{max(labels.mean(), 1 - labels.mean()):.0%})"
+        )
+    print("\n".join(lines[2:]), flush=True)
+    (out / f"atp_shock_timing_worked_at{first_at}.txt").write_text("\n".join(lines) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=("label", "fit", "features", "second"))
+    parser.add_argument("stage", choices=("label", "fit", "features", "second", "worked"))
     parser.add_argument("--draws", type=int, default=96)
     parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit, second)")
     parser.add_argument("--replicas", type=int, default=100)
@@ -465,6 +522,8 @@ def main() -> None:
         compare_features(args.out)
     elif args.stage == "second":
         second(args.replicas, args.out, args.overrides, args.first, args.seeds)
+    elif args.stage == "worked":
+        worked(args.replicas, args.out, args.overrides, args.first)
     else:
         fit(args.out, args.seeds, args.replicas, args.overrides)
 
