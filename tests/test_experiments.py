@@ -836,7 +836,8 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     (continuing where it stopped); ``fit`` evaluates the chosen policy on the held-out seeds
     (at most one shock each) and records its command; ``second`` names the draws where the
     chosen policy's shock fails, and with ``--first 0`` those where a shock at 0 fails, with
-    the rule timing a second shock from the readings after it."""
+    the rule timing a second shock from the readings after it; ``worked`` compares the readings
+    after the shocks at 0 that work with those after the ones that fail."""
     small = [*SMALL_ATP, "env.model.compile=false"]
     arguments = ["--replicas", "4", "--out", str(tmp_path), *small]
     run_script("atp_shock_timing.py", "label", "--draws", "4", *arguments)
@@ -901,6 +902,18 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     labels = torch.load(tmp_path / "second" / "atp_shock_timing_second_at0.pt")
     assert labels["seeds"] == [2_000_000_000, 2_000_000_001]
     assert labels["readings"][:, 0].isnan().all() and not labels["readings"][:, 1:].isnan().any()
+    # worked --first 0: the readings after the shock at 0 where it works (draws 2, 3) against
+    # those where it fails (second's), at decisions 1 and 2
+    run_script("atp_shock_timing.py", "worked", "--first", "0", *second)
+    lines = (tmp_path / "second" / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
+    assert lines[2].startswith("a shock at decision 0 works on 2 of 4 labelled draws")
+    for k, line in zip((1, 2), lines[3:], strict=True):
+        running = re.match(
+            rf"decision {k}: (\d+) working and 2 failed still running \((\d+) ended\)", line
+        )
+        assert sum(map(int, running.groups())) == 2, line
+    readings = torch.load(tmp_path / "second" / "atp_shock_timing_worked_at0.pt")["readings"]
+    assert readings.shape == (2, 3, 20) and readings[:, 0].isnan().all()
     # on 2 ranks: the same policy and episodes, the follower's environment serving the leader
     (tmp_path / "atp_shock_timing.csv").rename(tmp_path / "one_rank.csv")
     script = str(ROOT / "experiments" / "atp_shock_timing.py")
@@ -908,6 +921,30 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     assert (tmp_path / "atp_shock_timing.csv").read_text() == (
         tmp_path / "one_rank.csv"
     ).read_text()
+
+
+def test_worked_table_comes_from_the_stored_readings(tmp_path):
+    """``atp_shock_timing_worked_at0.txt`` (do the readings after a shock at 0 tell whether it
+    worked?) is what ``worked --first 0`` computes from the stored readings (``.pt`` of the
+    working draws and of ``second``'s failed ones; no episode runs), line for line."""
+    results = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
+    (tmp_path / "atp_shock_timing_labels").mkdir()
+    for chunk in (results / "atp_shock_timing_labels").glob("chunk-*.pt"):
+        (tmp_path / "atp_shock_timing_labels" / chunk.name).write_bytes(chunk.read_bytes())
+    for name in ("atp_shock_timing_second_at0.pt", "atp_shock_timing_worked_at0.pt"):
+        (tmp_path / name).write_bytes((results / name).read_bytes())
+    run_script(
+        "atp_shock_timing.py",
+        "worked",
+        "--first",
+        "0",
+        "--out",
+        str(tmp_path),
+        "env.shock.radius=35.0",
+    )
+    lines = (tmp_path / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
+    stored = (results / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
+    assert lines[2:] == stored[2:] and len(lines) == 2 + 1 + 23
 
 
 def test_convergence_study_names_its_policies():
