@@ -366,21 +366,41 @@ def second_shocks(env, path: Path, first: dict[int, int], decisions: int):
     return labels["readings"].double().numpy(), labels["second"].double().numpy()
 
 
+def first_shock_readings(env, path: Path, first: dict[int, int], decisions: int) -> np.ndarray:
+    """(draws, decisions, readings): the readings after each draw's one shock (``first``: seed ->
+    its decision), one episode each, NaN up to the shock and after the episode's end. Run once
+    and kept in ``path``, read from there after."""
+    if not path.exists():
+        jobs = [(Schedule([at]), seed) for seed, at in first.items()]
+        with torch.no_grad():
+            rollouts = spread_episodes(env, jobs, MAX_STEPS)
+        size = env.observation_spec["observation"].shape[-1]
+        readings = torch.full((len(first), decisions, size), float("nan"))
+        for i, (at, rollout) in enumerate(zip(first.values(), rollouts, strict=True)):
+            seen = min(decisions, rollout.shape[0])
+            readings[i, at + 1 : seen] = rollout["observation"][at + 1 : seen]
+        torch.save({"seeds": list(first), "readings": readings}, path)
+    stored = torch.load(path)
+    if stored["seeds"] != list(first):
+        raise ValueError(f"{path} holds other draws: move it away to rerun")
+    return stored["readings"].double().numpy()
+
+
 def second(
     replicas: int, out: Path, overrides: list[str], first_at: int | None = None, held_out: int = 20
 ) -> None:
     """The outcomes of a second shock at each decision after failed first shocks: the shock-once
     policy's (``first_at`` None), or a shock at decision ``first_at`` on every draw. With
     hindsight (the second shock at its best decision) an upper bound on a policy that shocks
-    again after a failed shock; then the same leave-one-draw-out choice as ``fit``'s, among the
-    draws whose first shock failed, of a rule timing the second shock from the readings after
-    the failed one, and that policy (:class:`ShockAgain`, fitted on every labelled draw) on
-    ``held_out`` held-out seeds. The rule's choice sees only the draws whose first shock failed,
-    where a policy also meets the others (a shock that works mostly ends the arrhythmia after
-    the last decision, unseen): its count is an upper bound, the held-out run the measure.
-    Into ``<out>/atp_shock_timing_second[_at<first_at>]``: ``.pt`` (the second shocks' readings
-    and outcomes; an existing one is read, not rerun), ``.txt`` and ``.csv`` (per held-out
-    seed)."""
+    again after a failed shock. Then the same leave-one-draw-out choice as ``fit``'s, among every
+    draw with a first shock, of a rule timing a second shock from the readings after the first
+    (a shock that works mostly ends the arrhythmia only after the last decision, so a policy
+    meets those draws too: there a second shock counts as undoing the first, a pessimistic
+    label), and that policy (:class:`ShockAgain`, fitted on every labelled draw) on
+    ``held_out`` held-out seeds. Into ``<out>/atp_shock_timing_second[_at<first_at>]``: ``.pt``
+    (the second shocks' readings and outcomes; an existing one is read, not rerun), ``.txt`` and
+    ``.csv`` (per held-out seed); the readings after the first shocks that work in
+    ``atp_shock_timing_worked[_at<first_at>].pt``."""
     seeds, x, y, never = load_labels(out)
     seen = ~np.isnan(x[..., 0])
     if first_at is None:
@@ -394,7 +414,9 @@ def second(
         policy = f"a shock at decision {first_at}"
         first_policy = partial(Schedule, [first_at])
     failed = [d for d, shot in enumerate(first) if shot >= 0 and not y[d, shot]]
-    path = out / ("atp_shock_timing_second" + ("" if first_at is None else f"_at{first_at}"))
+    works = [d for d, shot in enumerate(first) if shot >= 0 and y[d, shot]]
+    suffix = "" if first_at is None else f"_at{first_at}"
+    path = out / f"atp_shock_timing_second{suffix}"
     cfg, factory = make_env(replicas, overrides)
     decisions = cfg.env.max_decisions
     with abort_on_error(), environments(factory, 1) as env:
@@ -402,7 +424,10 @@ def second(
             return
         failed_first = {seeds[d]: first[d] for d in failed}
         readings, y2 = second_shocks(env, path.with_suffix(".pt"), failed_first, decisions)
-        x2 = features(readings)
+        first_works = {seeds[d]: first[d] for d in works}
+        after_works = first_shock_readings(
+            env, out / f"atp_shock_timing_worked{suffix}.pt", first_works, decisions
+        )
         lines = [shlex.join(["python", *sys.argv]), provenance()]
         lines.append(
             f"{policy}: ends {ends} of {len(x)} labelled draws; its shock fails on "
@@ -418,17 +443,22 @@ def second(
             f"({(ends + rescued) / len(x):.1%})"
         )
         if len(failed) > 1:
-            none, seen2 = np.zeros(len(failed)), ~np.isnan(x2[..., 0])
-            k2, theta2, _ = choose(x2, y2, none)
+            # every shocked draw: a second shock where the first worked counts as undoing it
+            x2 = features(np.concatenate([readings, after_works]))
+            y2 = np.concatenate([y2, np.zeros(after_works.shape[:2])])
+            kept = np.r_[np.zeros(len(failed)), np.ones(len(works))]  # without a second shock
+            unshocked = int(sum(never[d] for d, shot in enumerate(first) if shot < 0))
+            k2, theta2, _ = choose(x2, y2, kept)
             p2 = leave_one_draw_out(x2, y2, partial(Neighbours, k=k2))
-            timed = int(outcomes(p2, y2, none, theta2).sum())
+            timed = int(outcomes(p2, y2, kept, theta2).sum())
             lines.append(
-                f"timed from the readings after the failed shock (neighbours {k2}, theta "
-                f"{theta2}, each draw's from the other {len(failed) - 1}): a second shock ends "
-                f"{timed} of the {len(failed)}; at most {ends + timed} of {len(x)} "
-                f"({(ends + timed) / len(x):.1%}), counting the draws the first shock ends as "
-                "ended (the rule runs there too: a second shock can undo the first)"
+                f"timed from the readings after the first shock (neighbours {k2}, theta {theta2}; "
+                f"each of the {len(x2)} shocked draws' from the others; a second shock where the "
+                f"first worked counted as undoing it): ends {timed} of them; with the "
+                f"{unshocked} unshocked draws that end by themselves, {timed + unshocked} of "
+                f"{len(x)} ({(timed + unshocked) / len(x):.1%})"
             )
+            seen2 = ~np.isnan(x2[..., 0])
             again = Neighbours(x2[seen2], y2[seen2], k2)
             jobs = [
                 (ShockAgain(first_policy(), again, theta2), s) for s in held_out_seeds(held_out)
@@ -463,16 +493,9 @@ def worked(replicas: int, out: Path, overrides: list[str], first_at: int) -> Non
     with abort_on_error(), environments(factory, 1) as env:
         if env is None:  # another rank: its environment served the leader's episodes
             return
-        if not path.exists():
-            jobs = [(Schedule([first_at]), seeds[d]) for d in works]
-            with torch.no_grad():
-                rollouts = spread_episodes(env, jobs, MAX_STEPS)
-            readings = torch.full((len(works), decisions, x.shape[-1] - 1), float("nan"))
-            for i, rollout in enumerate(rollouts):
-                seen = min(decisions, rollout.shape[0])
-                readings[i, first_at + 1 : seen] = rollout["observation"][first_at + 1 : seen]
-            torch.save({"seeds": [seeds[d] for d in works], "readings": readings}, path)
-        after_works = torch.load(path)["readings"].double().numpy()
+        after_works = first_shock_readings(
+            env, path, {seeds[d]: first_at for d in works}, decisions
+        )
         after_fails, _ = second_shocks(
             env, out / f"atp_shock_timing_second_at{first_at}.pt", failed, decisions
         )
