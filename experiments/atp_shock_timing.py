@@ -5,6 +5,7 @@
     python experiments/atp_shock_timing.py features             # seconds
     python experiments/atp_shock_timing.py second               # ~200 episodes
     python experiments/atp_shock_timing.py second --first 0     # ~1,000 episodes
+    python experiments/atp_shock_timing.py worked --first 0     # ~50 episodes
 
 The timing variant (``+experiment=atp_timing``) on the bar's simulator (torch, float32,
 compiled). ``label``: for draws outside the held-out seeds (seeds 2000000000, 2000000001, ...),
@@ -34,8 +35,11 @@ as ``fit`` chooses, each draw's p from the other draws) shocks and fails, or wit
 those where a shock at decision D fails, and on each of them a second shock at each later
 decision: whether it ends the arrhythmia. With hindsight, an upper bound on a policy that shocks
 again after that failed shock; and, chosen as ``fit`` chooses, a rule that times the second shock
-from the readings after the failed one, run on the held-out seeds
+from the readings after the first shock, run on the held-out seeds
 (``atp_shock_timing_second[_atD].txt``, ``.csv``, and the second shocks' labels in ``.pt``).
+
+``worked --first D``: do the readings after a shock at D tell the draws where it worked from
+those where it failed? (``atp_shock_timing_worked_atD.txt``.)
 """
 
 from __future__ import annotations
