@@ -5,7 +5,7 @@
     python experiments/atp_shock_timing.py features             # seconds
     python experiments/atp_shock_timing.py second               # ~200 episodes
     python experiments/atp_shock_timing.py second --first 0     # ~1,000 episodes
-    python experiments/atp_shock_timing.py worked --first 0     # ~50 episodes
+    python experiments/atp_shock_timing.py worked --first 0     # seconds, after second
 
 The timing variant (``+experiment=atp_timing``) on the bar's simulator (torch, float32,
 compiled). ``label``: for draws outside the held-out seeds (seeds 2000000000, 2000000001, ...),
@@ -39,7 +39,7 @@ from the readings after the first shock, run on the held-out seeds
 (``atp_shock_timing_second[_atD].txt``, ``.csv``, and the second shocks' labels in ``.pt``).
 
 ``worked --first D``: do the readings after a shock at D tell the draws where it worked from
-those where it failed? (``atp_shock_timing_worked_atD.txt``.)
+those where it failed? From ``second --first D``'s readings (``atp_shock_timing_worked_atD.txt``).
 """
 
 from __future__ import annotations
@@ -481,31 +481,24 @@ def second(
     path.with_suffix(".txt").write_text("\n".join(lines) + "\n")
 
 
-def worked(replicas: int, out: Path, overrides: list[str], first_at: int) -> None:
+def worked(out: Path, first_at: int) -> None:
     """Do the catheter's readings after a shock at decision ``first_at`` tell whether it worked?
-    The readings of the draws where it works (one episode each, kept in
-    ``<out>/atp_shock_timing_worked_at<first_at>.pt``) against those where it fails (from
-    ``second --first``'s ``.pt``); at each later decision, the k-nearest-neighbour vote (k of
+    The readings after it where it works against those where it fails (both stored by ``second
+    --first``, which runs first); at each later decision, the k-nearest-neighbour vote (k of
     :data:`NEIGHBOURS`, the best) of each draw from the other draws still running there, and
     how many episodes have visibly ended; into ``atp_shock_timing_worked_at<first_at>.txt``."""
-    seeds, x, y, _ = load_labels(out)
-    works = [d for d in range(len(x)) if y[d, first_at]]
-    failed = {seeds[d]: first_at for d in range(len(x)) if not y[d, first_at]}
-    path = out / f"atp_shock_timing_worked_at{first_at}.pt"
-    cfg, factory = make_env(replicas, overrides)
-    decisions = cfg.env.max_decisions
-    with abort_on_error(), environments(factory, 1) as env:
-        if env is None:  # another rank: its environment served the leader's episodes
-            return
-        after_works = first_shock_readings(
-            env, path, {seeds[d]: first_at for d in works}, decisions
-        )
-        after_fails, _ = second_shocks(
-            env, out / f"atp_shock_timing_second_at{first_at}.pt", failed, decisions
-        )
+    _, x, y, _ = load_labels(out)
+    works = int(y[:, first_at].sum())
+    stored = {
+        name: torch.load(out / f"atp_shock_timing_{name}_at{first_at}.pt")
+        for name in ("worked", "second")
+    }
+    after_works = stored["worked"]["readings"].double().numpy()
+    after_fails = stored["second"]["readings"].double().numpy()
+    decisions = x.shape[1]
     lines = [shlex.join(["python", *sys.argv]), provenance()]
     lines.append(
-        f"a shock at decision {first_at} works on {len(works)} of {len(x)} labelled draws; at "
+        f"a shock at decision {first_at} works on {works} of {len(x)} labelled draws; at "
         "each later decision, the draws still running and how often the readings there tell a "
         "working shock from a failed one (each draw's vote from the other draws)"
     )
@@ -523,7 +516,7 @@ def worked(replicas: int, out: Path, overrides: list[str], first_at: int) -> Non
         n = max(told, key=told.get)
         lines.append(
             f"decision {k}: {int(labels.sum())} working and {int((1 - labels).sum())} failed "
-            f"still running ({len(works) - int(labels.sum())} ended); told apart on "
+            f"still running ({works - int(labels.sum())} ended); told apart on "
             f"{told[n]:.0%} (neighbours {n}; the larger group alone: "
             f"{max(labels.mean(), 1 - labels.mean()):.0%})"
         )
@@ -550,7 +543,7 @@ def main() -> None:
     elif args.stage == "second":
         second(args.replicas, args.out, args.overrides, args.first, args.seeds)
     elif args.stage == "worked":
-        worked(args.replicas, args.out, args.overrides, args.first)
+        worked(args.out, args.first)
     else:
         fit(args.out, args.seeds, args.replicas, args.overrides)
 

@@ -907,7 +907,7 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     assert labels["readings"][:, 0].isnan().all() and not labels["readings"][:, 1:].isnan().any()
     # worked --first 0: the readings after the shock at 0 where it works (draws 2, 3) against
     # those where it fails (second's), at decisions 1 and 2
-    run_script("atp_shock_timing.py", "worked", "--first", "0", *second)
+    run_script("atp_shock_timing.py", "worked", "--first", "0", "--out", str(tmp_path / "second"))
     lines = (tmp_path / "second" / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
     assert lines[2].startswith("a shock at decision 0 works on 2 of 4 labelled draws")
     for k, line in zip((1, 2), lines[3:], strict=True):
@@ -926,27 +926,27 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     ).read_text()
 
 
+R35_LABELLED = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
+
+
+def copy_labels(out: Path, *stored: str) -> None:
+    """The r35 labelled draws' chunks and the ``stored`` files of their folder, copied to
+    ``out`` (the scripts write beside them)."""
+    (out / "atp_shock_timing_labels").mkdir()
+    for chunk in (R35_LABELLED / "atp_shock_timing_labels").glob("chunk-*.pt"):
+        (out / "atp_shock_timing_labels" / chunk.name).write_bytes(chunk.read_bytes())
+    for name in stored:
+        (out / name).write_bytes((R35_LABELLED / name).read_bytes())
+
+
 def test_worked_table_comes_from_the_stored_readings(tmp_path):
     """``atp_shock_timing_worked_at0.txt`` (do the readings after a shock at 0 tell whether it
     worked?) is what ``worked --first 0`` computes from the stored readings (``.pt`` of the
-    working draws and of ``second``'s failed ones; no episode runs), line for line."""
-    results = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
-    (tmp_path / "atp_shock_timing_labels").mkdir()
-    for chunk in (results / "atp_shock_timing_labels").glob("chunk-*.pt"):
-        (tmp_path / "atp_shock_timing_labels" / chunk.name).write_bytes(chunk.read_bytes())
-    for name in ("atp_shock_timing_second_at0.pt", "atp_shock_timing_worked_at0.pt"):
-        (tmp_path / name).write_bytes((results / name).read_bytes())
-    run_script(
-        "atp_shock_timing.py",
-        "worked",
-        "--first",
-        "0",
-        "--out",
-        str(tmp_path),
-        "env.shock.radius=35.0",
-    )
+    working draws and of the failed ones, both from ``second --first 0``), line for line."""
+    copy_labels(tmp_path, "atp_shock_timing_second_at0.pt", "atp_shock_timing_worked_at0.pt")
+    run_script("atp_shock_timing.py", "worked", "--first", "0", "--out", str(tmp_path))
     lines = (tmp_path / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
-    stored = (results / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
+    stored = (R35_LABELLED / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
     assert lines[2:] == stored[2:] and len(lines) == 2 + 1 + 23
 
 
@@ -1288,15 +1288,12 @@ def test_a_second_shock_ends_a_labelled_draw_where_its_table_says(tmp_path, tabl
 @pytest.mark.slow  # two 60 x 60 episodes, compiled, on 2 ranks of 100 replicas: make test-resolved
 def test_shock_again_rows_come_from_the_stored_second_shocks(tmp_path):
     """``atp_shock_timing_second_at0``: ``second --first 0`` on a copy of the labelled draws and
-    the stored second shocks (``.pt``, read, not rerun) writes the table's lines again (the
-    rules chosen on the labels), and the policy fitted there gives the stored rows of the first
-    two held-out seeds (outcome and shocks; in float32 a return may differ with the batch)."""
-    results = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
-    (tmp_path / "atp_shock_timing_labels").mkdir()
-    for chunk in (results / "atp_shock_timing_labels").glob("chunk-*.pt"):
-        (tmp_path / "atp_shock_timing_labels" / chunk.name).write_bytes(chunk.read_bytes())
-    stem = "atp_shock_timing_second_at0"
-    (tmp_path / f"{stem}.pt").write_bytes((results / f"{stem}.pt").read_bytes())
+    the stored readings after the first shocks (``.pt``, read, not rerun) writes the table's
+    lines again (the rules chosen on the labels), and the policy fitted there gives the stored
+    rows of the first two held-out seeds (outcome and shocks; in float32 a return may differ
+    with the batch)."""
+    results, stem = R35_LABELLED, "atp_shock_timing_second_at0"
+    copy_labels(tmp_path, f"{stem}.pt", "atp_shock_timing_worked_at0.pt")
     script = str(ROOT / "experiments" / "atp_shock_timing.py")
     arguments = ["second", "--first", "0", "--seeds", "2", "--out", str(tmp_path)]
     run_mpi(2, script, *arguments, "env.shock.radius=35.0", timeout=900)
