@@ -43,6 +43,10 @@ __all__ = ["guard", "ended"]
 
 PR_SET_PDEATHSIG = 1  # prctl option: a signal for this process when its parent dies
 TEARDOWN_S = 1.0  # how long a launcher may take to kill the guards after another rank's abort
+# how long the launcher is given to forward the guard's line before the abort ends it: without
+# it MPICH's mpiexec lost the line, written and flushed, in 8 of 280 jobs run two at a time
+# (tests/mpi_scripts/coord_exit.py vanish-SIGKILL); in none of 160 with it
+FORWARD_S = 0.5
 IGNORED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
 
 _marker: tuple[int, int] | None = None  # in the job: (the pipe to its guard, the job's pid)
@@ -110,6 +114,7 @@ def _watch(job: int, marker: int) -> NoReturn:
             "the launcher ends every rank\n"
         )
         sys.stderr.flush()
+        time.sleep(FORWARD_S)
         exit_status = exit_status or 1
         _abort(exit_status)
     os._exit(exit_status)  # not the job's atexit handlers a second time
