@@ -342,17 +342,25 @@ class ShockAgain(Policy):
         return int(self.shocked)
 
 
+def kept(path: Path, seeds: list[int], run) -> dict:
+    """``run()`` (a dict of tensors) once, kept in ``path`` beside ``seeds``; read from there
+    after (ValueError if it holds other draws)."""
+    if not path.exists():
+        torch.save({"seeds": seeds, **run()}, path)
+    stored = torch.load(path)
+    if stored["seeds"] != seeds:
+        raise ValueError(f"{path} holds other draws: move it away to rerun")
+    return stored
+
+
 def second_shocks(env, path: Path, first: dict[int, int], decisions: int):
     """(readings (draws, decisions, readings), outcomes (draws, decisions)) of a second shock at
     each decision after each draw's first (``first``: seed -> the decision of its failed first
     shock): the readings there, before the second shock, and whether it ends the arrhythmia
-    (NaN and 0 up to the first). Run once and kept in ``path``, read from there after."""
-    if not path.exists():
-        jobs = [
-            (Schedule([at, k]), seed)
-            for seed, at in first.items()
-            for k in range(at + 1, decisions)
-        ]
+    (NaN and 0 up to the first). Run once and :func:`kept` in ``path``."""
+
+    def run() -> dict:
+        jobs = [(Schedule([at, k]), s) for s, at in first.items() for k in range(at + 1, decisions)]
         with torch.no_grad():
             rollouts = iter(spread_episodes(env, jobs, MAX_STEPS))
         size = env.observation_spec["observation"].shape[-1]
@@ -363,18 +371,18 @@ def second_shocks(env, path: Path, first: dict[int, int], decisions: int):
                 rollout = next(rollouts)
                 readings[i, k] = rollout["observation"][k]
                 y2[i, k] = float(rollout["next", "success"][-1])
-        torch.save({"seeds": list(first), "readings": readings, "second": y2}, path)
-    labels = torch.load(path)
-    if labels["seeds"] != list(first):
-        raise ValueError(f"{path} holds other draws: move it away to rerun")
-    return labels["readings"].double().numpy(), labels["second"].double().numpy()
+        return {"readings": readings, "second": y2}
+
+    stored = kept(path, list(first), run)
+    return stored["readings"].double().numpy(), stored["second"].double().numpy()
 
 
 def first_shock_readings(env, path: Path, first: dict[int, int], decisions: int) -> np.ndarray:
     """(draws, decisions, readings): the readings after each draw's one shock (``first``: seed ->
     its decision), one episode each, NaN up to the shock and after the episode's end. Run once
-    and kept in ``path``, read from there after."""
-    if not path.exists():
+    and :func:`kept` in ``path``."""
+
+    def run() -> dict:
         jobs = [(Schedule([at]), seed) for seed, at in first.items()]
         with torch.no_grad():
             rollouts = spread_episodes(env, jobs, MAX_STEPS)
@@ -383,11 +391,9 @@ def first_shock_readings(env, path: Path, first: dict[int, int], decisions: int)
         for i, (at, rollout) in enumerate(zip(first.values(), rollouts, strict=True)):
             seen = min(decisions, rollout.shape[0])
             readings[i, at + 1 : seen] = rollout["observation"][at + 1 : seen]
-        torch.save({"seeds": list(first), "readings": readings}, path)
-    stored = torch.load(path)
-    if stored["seeds"] != list(first):
-        raise ValueError(f"{path} holds other draws: move it away to rerun")
-    return stored["readings"].double().numpy()
+        return {"readings": readings}
+
+    return kept(path, list(first), run)["readings"].double().numpy()
 
 
 def second(
@@ -484,7 +490,7 @@ def second(
 def worked(out: Path, first_at: int) -> None:
     """Do the catheter's readings after a shock at decision ``first_at`` tell whether it worked?
     The readings after it where it works against those where it fails (both stored by ``second
-    --first``, which runs first); at each later decision, the k-nearest-neighbour vote (k of
+    --first``, which runs first); at each later decision, the :class:`Neighbours` estimate (k of
     :data:`NEIGHBOURS`, the best) of each draw from the other draws still running there, and
     how many episodes have visibly ended; into ``atp_shock_timing_worked_at<first_at>.txt``."""
     _, x, y, _ = load_labels(out)
@@ -505,14 +511,13 @@ def worked(out: Path, first_at: int) -> None:
     readings = np.concatenate([after_works, after_fails])
     label = np.r_[np.ones(len(after_works)), np.zeros(len(after_fails))]
     for k in range(first_at + 1, decisions):
-        running = ~np.isnan(readings[:, k, 0])
-        points, labels = readings[running, k], label[running]
-        z = standardiser(points)(points)
-        distances = ((z[:, None] - z[None]) ** 2).sum(-1)
-        np.fill_diagonal(distances, np.inf)  # each draw left out of its own vote
-        nearest = np.argsort(distances, 1)
-        votes = {min(n, len(z) - 1) for n in NEIGHBOURS}
-        told = {n: ((labels[nearest[:, :n]].mean(1) > 0.5) == labels).mean() for n in votes}
+        x_k = readings[:, k : k + 1]  # (draws, 1, readings): one decision
+        running = ~np.isnan(x_k[:, 0, 0])
+        labels = label[running]
+        told = {}
+        for n in NEIGHBOURS:
+            p = leave_one_draw_out(x_k, label[:, None], partial(Neighbours, k=n))
+            told[n] = ((p[running, 0] > 0.5) == labels).mean()
         n = max(told, key=told.get)
         lines.append(
             f"decision {k}: {int(labels.sum())} working and {int((1 - labels).sum())} failed "
