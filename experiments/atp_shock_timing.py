@@ -3,6 +3,7 @@
     python experiments/atp_shock_timing.py label --draws 96     # ~2 core-hours
     python experiments/atp_shock_timing.py fit                  # a few minutes
     python experiments/atp_shock_timing.py features             # seconds
+    python experiments/atp_shock_timing.py observe --tag b observation.splines=10  # 96 episodes
     python experiments/atp_shock_timing.py second               # ~200 episodes
     python experiments/atp_shock_timing.py second --first 0     # ~1,000 episodes
     python experiments/atp_shock_timing.py worked --first 0     # seconds, after second
@@ -29,6 +30,9 @@ labelled draws.
 (:data:`FEATURE_SETS`: the readings alone, and with the previous decision's readings) and other
 estimates of P(y = 1 | x) than the neighbours' (:class:`Logistic`: a linear one and a small
 network), on the labels alone; ``atp_shock_timing_features.txt``.
+
+``observe``: the same choice with the readings of another observation (more electrodes), from
+the never-shock episodes of the labelled draws run again with it.
 
 ``second``: the draws where the shock-once policy (the reference's inputs, chosen on the labels
 as ``fit`` chooses, each draw's p from the other draws) shocks and fails, or with ``--first D``
@@ -99,17 +103,13 @@ def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
             jobs += [(Schedule([k]), s) for s in seeds for k in range(decisions)]
             with torch.no_grad():
                 rollouts = spread_episodes(env, jobs, MAX_STEPS)
-            # decisions after a never-shock episode's end (it ended by itself) are not seen: NaN
-            size = rollouts[0]["observation"].shape[-1]
-            observations = torch.full((PER_CHUNK, decisions, size), float("nan"))
-            for i, rollout in enumerate(rollouts[:PER_CHUNK]):
-                seen = min(decisions, rollout.shape[0])
-                observations[i, :seen] = rollout["observation"][:seen]
             success = torch.tensor([float(r["next", "success"][-1]) for r in rollouts])
             torch.save(
                 {
                     "seeds": seeds,
-                    "observations": observations,
+                    "observations": readings_after(
+                        rollouts[:PER_CHUNK], [-1] * PER_CHUNK, decisions
+                    ),
                     "never": success[:PER_CHUNK],
                     "single": success[PER_CHUNK:].reshape(PER_CHUNK, decisions),
                 },
@@ -120,6 +120,18 @@ def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
                 f"{PER_CHUNK * decisions} single shocks end the arrhythmia",
                 flush=True,
             )
+
+
+def readings_after(rollouts: list, shots: list[int], decisions: int) -> torch.Tensor:
+    """(episodes, decisions, readings): each episode's observations after its shot's decision
+    (-1: from decision 0); NaN up to it and after the episode's end (it ended by itself, so
+    those decisions are not seen)."""
+    size = rollouts[0]["observation"].shape[-1]
+    readings = torch.full((len(rollouts), decisions, size), float("nan"))
+    for i, (at, rollout) in enumerate(zip(shots, rollouts, strict=True)):
+        seen = min(decisions, rollout.shape[0])
+        readings[i, at + 1 : seen] = rollout["observation"][at + 1 : seen]
+    return readings
 
 
 def load_labels(out: Path) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
@@ -181,6 +193,55 @@ def compare_features(out: Path) -> None:
             lines.append(f"{name}, {label}: {success:.1%} (theta {theta})")
             print(lines[-1], flush=True)
     (out / "atp_shock_timing_features.txt").write_text("\n".join(lines) + "\n")
+
+
+def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
+    """Would another observation tell the window better? The never-shock episodes of the
+    labelled draws, observed as ``overrides`` say (e.g. a basket of 8 splines of 8 electrodes:
+    ``observation.splines=8 'observation.distances=[...]'``; the dynamics are those of the
+    labels), :func:`kept` in ``<out>/atp_shock_timing_observe_<tag>.pt``; then the reference's
+    leave-one-draw-out choice (the neighbours on the readings and the decision) with those
+    readings and the stored single-shock labels, beside the labels' own readings, on the first
+    24, 48, 72 and all labelled draws (does the choice improve with more draws?), into
+    ``atp_shock_timing_observe_<tag>.txt``."""
+    seeds, x, y, never = load_labels(out)
+    cfg, factory = make_env(replicas, overrides)
+    decisions = cfg.env.max_decisions
+    with abort_on_error(), environments(factory, 1) as env:
+        if env is None:  # another rank: its environment served the leader's episodes
+            return
+
+        def run() -> dict:
+            with torch.no_grad():
+                rollouts = spread_episodes(env, [(Constant(0), s) for s in seeds], MAX_STEPS)
+            ended = torch.tensor([float(r["next", "success"][-1]) for r in rollouts])
+            return {
+                "readings": readings_after(rollouts, [-1] * len(seeds), decisions),
+                "never": ended,
+            }
+
+        path = out / f"atp_shock_timing_observe_{tag}.pt"
+        stored = kept(path, seeds, run)
+        if stored["readings"].shape[-1] != env.observation_spec["observation"].shape[-1]:
+            raise ValueError(f"{path} holds another observation's readings: another --tag")
+    readings = stored["readings"].double().numpy()
+    sizes = [n for n in (24, 48, 72) if n < len(seeds)] + [len(seeds)]
+    lines = [shlex.join(["python", *sys.argv]), provenance()]
+    lines.append(
+        f"{len(seeds)} labelled draws; never-shock outcome as the labels' on "
+        f"{int((stored['never'].numpy() == never).sum())}; hindsight best single shock: "
+        + ", ".join(f"first {n} draws {y[:n].max(1).mean():.1%}" for n in sizes)
+    )
+    for name, inputs in (("the labels' readings", x), (f"{tag}'s", features(readings))):
+        chosen = [(n, *choose(inputs[:n], y[:n], never[:n])) for n in sizes]
+        lines.append(
+            f"{name} ({inputs.shape[-1] - 1} readings), decision: "
+            + "; ".join(
+                f"first {n} draws {s:.1%} (neighbours {k}, theta {t})" for n, k, t, s in chosen
+            )
+        )
+    print("\n".join(lines[2:]), flush=True)
+    (out / f"atp_shock_timing_observe_{tag}.txt").write_text("\n".join(lines) + "\n")
 
 
 def standardiser(x: np.ndarray):
@@ -386,12 +447,7 @@ def first_shock_readings(env, path: Path, first: dict[int, int], decisions: int)
         jobs = [(Schedule([at]), seed) for seed, at in first.items()]
         with torch.no_grad():
             rollouts = spread_episodes(env, jobs, MAX_STEPS)
-        size = env.observation_spec["observation"].shape[-1]
-        readings = torch.full((len(first), decisions, size), float("nan"))
-        for i, (at, rollout) in enumerate(zip(first.values(), rollouts, strict=True)):
-            seen = min(decisions, rollout.shape[0])
-            readings[i, at + 1 : seen] = rollout["observation"][at + 1 : seen]
-        return {"readings": readings}
+        return {"readings": readings_after(rollouts, list(first.values()), decisions)}
 
     return kept(path, list(first), run)["readings"].double().numpy()
 
@@ -531,13 +587,16 @@ def worked(out: Path, first_at: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=("label", "fit", "features", "second", "worked"))
+    parser.add_argument(
+        "stage", choices=("label", "fit", "features", "observe", "second", "worked")
+    )
     parser.add_argument("--draws", type=int, default=96)
     parser.add_argument("--seeds", type=int, default=20, help="held-out seeds (fit, second)")
     parser.add_argument("--replicas", type=int, default=100)
     parser.add_argument(
         "--first", type=int, help="second: the first shock at this decision on every draw"
     )
+    parser.add_argument("--tag", default="other", help="observe: the observation's name")
     parser.add_argument("--out", type=Path, default=Path("experiments/results"))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. env.mesh.cells=20")
     args = parser.parse_intermixed_args()
@@ -545,6 +604,8 @@ def main() -> None:
         label(args.draws, args.replicas, args.out, args.overrides)
     elif args.stage == "features":
         compare_features(args.out)
+    elif args.stage == "observe":
+        observe(args.out, args.tag, args.replicas, args.overrides)
     elif args.stage == "second":
         second(args.replicas, args.out, args.overrides, args.first, args.seeds)
     elif args.stage == "worked":

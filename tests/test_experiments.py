@@ -861,6 +861,19 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     module = shock_timing()
     names = [[f, *(f"{f}, {e}" for e in module["ESTIMATES"])] for f in module["FEATURE_SETS"]]
     assert [line.split(":")[0] for line in lines[3:]] == sum(names, [])
+    # observe: the never-shock episodes again, read by a catheter of twice the splines and
+    # more electrodes on each; every other spline's electrodes at the labels' distances read
+    # what the labels' catheter read
+    basket = ["observation.splines=10", "observation.distances=[42.5,37.5,32.5,17.5,12.5]"]
+    run_script("atp_shock_timing.py", "observe", "--tag", "basket", *arguments, *basket)
+    readings = torch.load(tmp_path / "atp_shock_timing_observe_basket.pt")["readings"]
+    assert readings.shape == (4, 3, 50)
+    pentaray = readings.reshape(4, 3, 10, 5)[:, :, ::2, 1:].reshape(4, 3, 20)
+    torch.testing.assert_close(pentaray, chunk["observations"], equal_nan=True)
+    lines = (tmp_path / "atp_shock_timing_observe_basket.txt").read_text().splitlines()
+    assert lines[2].startswith("4 labelled draws; never-shock outcome as the labels' on 4;")
+    assert lines[3].startswith("the labels' readings (20 readings), decision: ")
+    assert lines[4].startswith("basket's (50 readings), decision: ")
     # second: labels where every single shock works but draw 0's, so that the chosen policy
     # shocks draw 0 at decision 0 (the others' labels say it works) and fails
     chunk["single"] = torch.ones_like(chunk["single"])
