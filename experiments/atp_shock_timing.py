@@ -51,6 +51,7 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
+from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 
@@ -84,16 +85,25 @@ def make_env(replicas: int, overrides: list[str]):
     return cfg, lambda coordinator: builders.make_env(cfg, coordinator)
 
 
+@contextmanager
+def leader_env(replicas: int, overrides: list[str]):
+    """(the config, the env of :func:`make_env`) on the leader, which runs every episode and
+    writes every file; (the config, None) on the other ranks, once their environment has served
+    the leader's episodes. An error on any rank ends every rank."""
+    cfg, factory = make_env(replicas, overrides)
+    with abort_on_error(), environments(factory, 1) as env:
+        yield cfg, env
+
+
 def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
     """The observations and single-shock outcomes of ``draws`` draws, chunk by chunk."""
-    cfg, factory = make_env(replicas, overrides)
-    decisions = cfg.env.max_decisions
-    (out / LABELS).mkdir(parents=True, exist_ok=True)
-    with (out / LABELS / "labels.txt").open("a") as record:  # every call that adds chunks
-        record.write(f"{shlex.join(['python', *sys.argv])}  # {provenance()}\n")
-    with abort_on_error(), environments(factory, 1) as env:
-        if env is None:  # another rank: its environment served the leader's episodes
+    with leader_env(replicas, overrides) as (cfg, env):
+        if env is None:
             return
+        decisions = cfg.env.max_decisions
+        (out / LABELS).mkdir(parents=True, exist_ok=True)
+        with (out / LABELS / "labels.txt").open("a") as record:  # every call that adds chunks
+            record.write(f"{shlex.join(['python', *sys.argv])}  # {provenance()}\n")
         for chunk in range(-(-draws // PER_CHUNK)):
             path = out / LABELS / f"chunk-{chunk:03d}.pt"
             if path.exists():
@@ -205,11 +215,10 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
     24, 48, 72 and all labelled draws (does the choice improve with more draws?), into
     ``atp_shock_timing_observe_<tag>.txt``."""
     seeds, x, y, never = load_labels(out)
-    cfg, factory = make_env(replicas, overrides)
-    decisions = cfg.env.max_decisions
-    with abort_on_error(), environments(factory, 1) as env:
-        if env is None:  # another rank: its environment served the leader's episodes
+    with leader_env(replicas, overrides) as (cfg, env):
+        if env is None:
             return
+        decisions = cfg.env.max_decisions
 
         def run() -> dict:
             with torch.no_grad():
@@ -365,10 +374,9 @@ def fit(out: Path, seeds: int, replicas: int, overrides: list[str]) -> None:
     _, x, y, never = load_labels(out)
     seen = ~np.isnan(x[..., 0])
     held_out = held_out_seeds(seeds)
-    _, factory = make_env(replicas, overrides)
     lines = []
-    with abort_on_error(), environments(factory, 1) as env:
-        if env is None:  # another rank: its environment served the leader's episodes
+    with leader_env(replicas, overrides) as (_, env):
+        if env is None:
             return
         sizes = [n for n in (8, 16, 32, 64) if n < len(x)] + [len(x)]
         for n in sizes:  # the learning curve: the first n labelled draws
@@ -483,11 +491,10 @@ def second(
     works = [d for d, shot in enumerate(first) if shot >= 0 and y[d, shot]]
     suffix = "" if first_at is None else f"_at{first_at}"
     path = out / f"atp_shock_timing_second{suffix}"
-    cfg, factory = make_env(replicas, overrides)
-    decisions = cfg.env.max_decisions
-    with abort_on_error(), environments(factory, 1) as env:
-        if env is None:  # another rank: its environment served the leader's episodes
+    with leader_env(replicas, overrides) as (cfg, env):
+        if env is None:
             return
+        decisions = cfg.env.max_decisions
         failed_first = {seeds[d]: first[d] for d in failed}
         readings, y2 = second_shocks(env, path.with_suffix(".pt"), failed_first, decisions)
         first_works = {seeds[d]: first[d] for d in works}

@@ -937,6 +937,13 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     assert (tmp_path / "atp_shock_timing.csv").read_text() == (
         tmp_path / "one_rank.csv"
     ).read_text()
+    # and the leader alone records a call of label
+    run_mpi(2, script, "label", "--draws", "8", *arguments, timeout=300)
+    calls = (tmp_path / "atp_shock_timing_labels" / "labels.txt").read_text().splitlines()
+    assert len(calls) == 3 and "label --draws 8" in calls[2]
+    assert torch.load(tmp_path / "atp_shock_timing_labels" / "chunk-001.pt")["seeds"][0] == (
+        2_000_000_004
+    )
 
 
 R35_LABELLED = ROOT / "experiments" / "results" / "atp_timing_r35_labelled_draws"
