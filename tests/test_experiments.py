@@ -5,6 +5,7 @@ import json
 import os
 import re
 import runpy
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -968,6 +969,24 @@ def test_worked_table_comes_from_the_stored_readings(tmp_path):
     lines = (tmp_path / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
     stored = (R35_LABELLED / "atp_shock_timing_worked_at0.txt").read_text().splitlines()
     assert lines[2:] == stored[2:] and len(lines) == 2 + 1 + 23
+
+
+def test_observe_table_comes_from_the_stored_readings(tmp_path):
+    """``atp_shock_timing_observe_basket80.txt`` (would 80 electrodes tell the window better
+    than the catheter's 20?) is what ``observe`` computes from the stored readings of the
+    basket and the labels, line for line; the stored readings of every other spline at the
+    pentaray's distances are the pentaray run's, bit for bit (the same dynamics)."""
+    copy_labels(tmp_path, "atp_shock_timing_observe_basket80.pt")
+    stored = (R35_LABELLED / "atp_shock_timing_observe_basket80.txt").read_text().splitlines()
+    command = shlex.split(stored[0])[2:]  # the stage and its settings, --out to tmp_path
+    command[command.index("--out") + 1] = str(tmp_path)
+    run_script("atp_shock_timing.py", *command)
+    lines = (tmp_path / "atp_shock_timing_observe_basket80.txt").read_text().splitlines()
+    assert lines[2:] == stored[2:] and len(lines) == 5
+    basket = torch.load(tmp_path / "atp_shock_timing_observe_basket80.pt")["readings"]
+    pentaray = torch.load(R35_LABELLED / "atp_shock_timing_observe_pentaray.pt")["readings"]
+    every_other = basket.reshape(96, 24, 10, 8)[:, :, ::2][..., [1, 2, 5, 6]]
+    assert torch.equal(every_other.reshape(96, 24, 20).nan_to_num(-1), pentaray.nan_to_num(-1))
 
 
 def test_convergence_study_names_its_policies():
