@@ -193,6 +193,7 @@ def compare_features(out: Path) -> None:
     readings, step = x[..., :-1], x[..., -1:]
     lines = [f"{shlex.join(['python', *sys.argv])}", provenance()]
     lines.append(f"{len(x)} labelled draws; hindsight best single shock: {y.max(1).mean():.1%}")
+    lines.append(recurrence(y))
     for name, inputs in FEATURE_SETS.items():
         x = inputs(readings, step)
         k, theta, success = choose(x, y, never)
@@ -251,6 +252,22 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
         )
     print("\n".join(lines[2:]), flush=True)
     (out / f"atp_shock_timing_observe_{tag}.txt").write_text("\n".join(lines) + "\n")
+
+
+def recurrence(y: np.ndarray, lags: int = 15) -> str:
+    """Do a draw's windows recur with the spiral's rotation? For each lag L, the fraction of
+    single shocks at k + L that work where the one at k works, beside that of all shocks at
+    k + L (y: (draws, decisions); L up to the decisions less one)."""
+    lags = min(lags, y.shape[1] - 1)
+    given = [
+        (y[:, :-lag] * y[:, lag:]).sum() / max(y[:, :-lag].sum(), 1) for lag in range(1, lags + 1)
+    ]
+    overall = [y[:, lag:].mean() for lag in range(1, lags + 1)]
+    percent = lambda values: " ".join(f"{v:.0%}" for v in values)  # noqa: E731
+    return (
+        f"a single shock at k + L works, L = 1..{lags}: where the one at k works "
+        f"{percent(given)}; of all {percent(overall)}"
+    )
 
 
 def standardiser(x: np.ndarray):

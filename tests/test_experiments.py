@@ -832,6 +832,14 @@ def test_shock_once_runs_the_single_shock_schedule_of_its_decision():
     assert [row["shocks"] for row in rows] == [2, 2]
 
 
+def test_recurrence_finds_windows_that_recur():
+    """Windows every 3 decisions (each draw its own phase): a shock 3 decisions after one that
+    works always works, 1, 2 or 4 after never; of all shocks, the fraction that work."""
+    y = np.array([[1, 0, 0, 1, 0, 0], [0, 1, 0, 0, 1, 0]], dtype=float)
+    line = shock_timing()["recurrence"](y, 4)
+    assert line.endswith("where the one at k works 0% 0% 100% 0%; of all 30% 25% 33% 25%")
+
+
 def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     """``label`` stores each draw's never-shock observations and its single shocks' outcomes
     (continuing where it stopped); ``fit`` evaluates the chosen policy on the held-out seeds
@@ -861,7 +869,8 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     assert "features" in lines[0] and "commit" in lines[1] and "4 labelled draws" in lines[2]
     module = shock_timing()
     names = [[f, *(f"{f}, {e}" for e in module["ESTIMATES"])] for f in module["FEATURE_SETS"]]
-    assert [line.split(":")[0] for line in lines[3:]] == sum(names, [])
+    assert lines[3].startswith("a single shock at k + L works, L = 1..2: where the one at k")
+    assert [line.split(":")[0] for line in lines[4:]] == sum(names, [])
     # observe: the never-shock episodes again, read by a catheter of twice the splines and
     # more electrodes on each; every other spline's electrodes at the labels' distances read
     # what the labels' catheter read
