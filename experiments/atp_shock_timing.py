@@ -87,20 +87,19 @@ def make_env(replicas: int, overrides: list[str]):
 
 @contextmanager
 def leader_env(replicas: int, overrides: list[str]):
-    """(the config, the env of :func:`make_env`) on the leader, which runs every episode and
-    writes every file; (the config, None) on the other ranks, once their environment has served
-    the leader's episodes. An error on any rank ends every rank."""
+    """(the decisions of an episode, the env of :func:`make_env`) on the leader, which runs
+    every episode and writes every file; (the decisions, None) on the other ranks, once their
+    environment has served the leader's episodes. An error on any rank ends every rank."""
     cfg, factory = make_env(replicas, overrides)
     with abort_on_error(), environments(factory, 1) as env:
-        yield cfg, env
+        yield cfg.env.max_decisions, env
 
 
 def label(draws: int, replicas: int, out: Path, overrides: list[str]) -> None:
     """The observations and single-shock outcomes of ``draws`` draws, chunk by chunk."""
-    with leader_env(replicas, overrides) as (cfg, env):
+    with leader_env(replicas, overrides) as (decisions, env):
         if env is None:
             return
-        decisions = cfg.env.max_decisions
         (out / LABELS).mkdir(parents=True, exist_ok=True)
         with (out / LABELS / "labels.txt").open("a") as record:  # every call that adds chunks
             record.write(f"{shlex.join(['python', *sys.argv])}  # {provenance()}\n")
@@ -216,10 +215,9 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
     24, 48, 72 and all labelled draws (does the choice improve with more draws?), into
     ``atp_shock_timing_observe_<tag>.txt``."""
     seeds, x, y, never = load_labels(out)
-    with leader_env(replicas, overrides) as (cfg, env):
+    with leader_env(replicas, overrides) as (decisions, env):
         if env is None:
             return
-        decisions = cfg.env.max_decisions
 
         def run() -> dict:
             with torch.no_grad():
@@ -508,10 +506,9 @@ def second(
     works = [d for d, shot in enumerate(first) if shot >= 0 and y[d, shot]]
     suffix = "" if first_at is None else f"_at{first_at}"
     path = out / f"atp_shock_timing_second{suffix}"
-    with leader_env(replicas, overrides) as (cfg, env):
+    with leader_env(replicas, overrides) as (decisions, env):
         if env is None:
             return
-        decisions = cfg.env.max_decisions
         failed_first = {seeds[d]: first[d] for d in failed}
         readings, y2 = second_shocks(env, path.with_suffix(".pt"), failed_first, decisions)
         first_works = {seeds[d]: first[d] for d in works}
