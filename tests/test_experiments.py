@@ -637,7 +637,8 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     5 of the 80 episodes change outcome: the bar's on draws 06 and 10, G2's on 10 and 14 and
     the third schedule's on 06 (experiments/results/README.md). The bar's episode on draw 10
     at 4000 x 4000 (``atp_resolved_timing_4000/``) is its 2000 x 2000 row, and so are G2's on
-    draws 10 and 14; the bar's on draw 06 ends there, as at 1000 x 1000."""
+    draws 10 and 14 and the third schedule's on draw 06; the bar's on draw 06 ends there, as at
+    1000 x 1000."""
     from physicsrl.tables import mean_metrics, read_per_policy
 
     results = ROOT / "experiments" / "results"
@@ -701,15 +702,19 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
         (347.5, 0.75, 1.8),
     ]
     # a third grid for the bar on draw 10 (it failed it at 1000, ended it at 2000): as at 2000;
-    # and on draw 06 (ended at 1000, failed at 2000): ended, as at 1000
+    # on draw 06 (ended at 1000, failed at 2000): ended, as at 1000; and for every 6th from 4
+    # on draw 06 (ended at 1000, failed at 2000): as at 2000
     finest = results / "atp_resolved_timing_4000" / "atp_resolved_timing_convergence.csv"
-    bar_4000 = {int(r["seed"]) % 1000: r for r in csv.DictReader(finest.open())}
-    assert sorted(bar_4000) == [6, 10] and {r["cells"] for r in bar_4000.values()} == {"4000"}
-    [row_2000] = [r for r in rows if r["policy"] == "every5from4" and r["seed"] == "1000000010"]
+    at_4000 = {(r["policy"], int(r["seed"]) % 1000): r for r in csv.DictReader(finest.open())}
+    assert sorted(at_4000) == [("every5from4", 6), ("every5from4", 10), ("every6from4", 6)]
+    assert {r["cells"] for r in at_4000.values()} == {"4000"}
     keys = ("policy", "seed", "return", "success", "shocks", "length")
-    assert [bar_4000[10][k] for k in keys] == [row_2000[k] for k in keys]
-    assert bar_4000[10]["return"] == "447.0"
-    outcome = [bar_4000[6][k] for k in ("return", "success", "shocks", "length")]
+    for policy, draw in (("every5from4", 10), ("every6from4", 6)):
+        [row_2000] = [r for r in rows if r["policy"] == policy and int(r["seed"]) % 1000 == draw]
+        assert [at_4000[policy, draw][k] for k in keys] == [row_2000[k] for k in keys]
+    assert at_4000["every5from4", 10]["return"] == "447.0"
+    assert at_4000["every6from4", 6]["return"] == "-20.0"  # failed: at 1000 461.0
+    outcome = [at_4000["every5from4", 6][k] for k in ("return", "success", "shocks", "length")]
     assert outcome == ["447.0", "1.0", "3", "15"]  # ended: at 1000 446.0, at 2000 -30.0
     # and G2's on draws 10 (it ended it at 1000, failed it at 2000) and 14 (failed, then
     # ended): as at 2000
