@@ -207,8 +207,8 @@ def compare_features(out: Path) -> None:
 
 def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
     """Would another observation tell the window better? The never-shock episodes of the
-    labelled draws, observed as ``overrides`` say (e.g. a basket of 8 splines of 8 electrodes:
-    ``observation.splines=8 'observation.distances=[...]'``; the dynamics are those of the
+    labelled draws, observed as ``overrides`` say (e.g. a basket of 10 splines of 8 electrodes:
+    ``observation.splines=10 'observation.distances=[...]'``; the dynamics are those of the
     labels), :func:`kept` in ``<out>/atp_shock_timing_observe_<tag>.pt``; then the reference's
     leave-one-draw-out choice (the neighbours on the readings and the decision) with those
     readings and the stored single-shock labels, beside the labels' own readings, on the first
@@ -253,7 +253,7 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
 
 
 def recurrence(y: np.ndarray, lags: int = 15) -> str:
-    """Do a draw's windows recur with the spiral's rotation? For each lag L, the fraction of
+    """Do a draw's windows recur (with the spiral's rotation?) For each lag L, the fraction of
     single shocks at k + L that work where the one at k works, beside that of all shocks at
     k + L (y: (draws, decisions); L up to the decisions less one)."""
     lags = min(lags, y.shape[1] - 1)
