@@ -209,7 +209,8 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
     """Would another observation tell the window better? The never-shock episodes of the
     labelled draws, observed as ``overrides`` say (e.g. a basket of 10 splines of 8 electrodes:
     ``observation.splines=10 'observation.distances=[...]'``; the dynamics are those of the
-    labels), :func:`kept` in ``<out>/atp_shock_timing_observe_<tag>.pt``; then the reference's
+    labels), :func:`kept` in ``<out>/atp_shock_timing_observe_<tag>.pt`` with the overrides
+    (other overrides under the same tag are refused); then the reference's
     leave-one-draw-out choice (the neighbours on the readings and the decision) with those
     readings and the stored single-shock labels, beside the labels' own readings, on the first
     24, 48, 72 and all labelled draws (does the choice improve with more draws?), into
@@ -226,12 +227,16 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
             return {
                 "readings": readings_after(rollouts, [-1] * len(seeds), decisions),
                 "never": ended,
+                "overrides": overrides,
             }
 
         path = out / f"atp_shock_timing_observe_{tag}.pt"
         stored = kept(path, seeds, run)
-        if stored["readings"].shape[-1] != env.observation_spec["observation"].shape[-1]:
-            raise ValueError(f"{path} holds another observation's readings: another --tag")
+        if stored["overrides"] != overrides:
+            raise ValueError(
+                f"{path} holds the readings of {stored['overrides']}, not {overrides}: "
+                "another --tag"
+            )
     readings = stored["readings"].double().numpy()
     sizes = [n for n in (24, 48, 72) if n < len(seeds)] + [len(seeds)]
     lines = [shlex.join(["python", *sys.argv]), provenance()]
