@@ -594,37 +594,49 @@ def test_resolved_timing_bar_is_the_results_tables():
 
 
 def test_resolved_timing_gpu_runs_are_the_results_tables():
-    """Runs G1 (H100) and G2 (H200) of the GPU preset, from their stored files: the same
-    evaluations at iterations 2 and 4, parting at 6; G2's kept policy is its iteration 7, whose
+    """Runs G1 (H100), G2 and G3 (H200) of the GPU preset, from their stored files: the same
+    evaluations at iterations 2 and 4, G1 parting at 6; G2's kept policy is its iteration 7, whose
     20 draws give 346.20, 75%, 1.90 shocks, the same episodes on the GPU (torch, float32) and on
     the CPU (DOLFINx/PETSc, float64), and end 09 and 10 where the bar (every 5th decision
-    from 4) fails, and fail 05, 14, 17 and 19 where it succeeds (experiments/results/README.md)."""
+    from 4) fails, and fail 05, 14, 17 and 19 where it succeeds. G3, the same command with
+    induce_ahead, gives G2's evaluations to iteration 6; its kept policy, iteration 9, gives
+    441.70, 95%, 1.90 shocks (again the same episodes on both), ending 01, 09 and 10, which the
+    bar fails, and failing 05, which it ends (experiments/results/README.md)."""
     from physicsrl.checkpoint import read
     from physicsrl.tables import mean_metrics, read_per_policy
 
     results = ROOT / "experiments" / "results"
-    g1, g2 = (
+    g1, g2, g3 = (
         {row["iteration"]: row for row in csv.DictReader((results / run / "eval.csv").open())}
-        for run in ("atp_resolved_timing_gpu", "atp_resolved_timing_gpu_g2")
+        for run in (
+            "atp_resolved_timing_gpu",
+            "atp_resolved_timing_gpu_g2",
+            "atp_resolved_timing_gpu_g3",
+        )
     )
     metrics = ("frames", "return", "success", "shocks")
     assert [[g1[i][k] for k in metrics] for i in "24"] == [
         [g2[i][k] for k in metrics] for i in "24"
     ]
-    assert (g1["6"]["return"], g2["6"]["return"]) == ("373.85", "349.1")
-    counters = read(results / "atp_resolved_timing_gpu_agent.torchrl", {"counters": True})
-    assert counters["counters"]["iteration"] == 7 and counters["counters"]["episodes"] == 448
-    kept = read_per_policy(results / "atp_resolved_timing_gpu_agent_eval.csv")["greedy DQN"]
-    cpu = read_per_policy(results / "atp_resolved_timing_gpu_agent_cpu_eval.csv")["greedy DQN"]
-    assert cpu == kept  # DOLFINx/PETSc in float64 on 2 CPU ranks: the GPU's float32 episodes
-    means = mean_metrics(kept)
-    assert (round(means["return"], 2), means["success"], means["shocks"]) == (346.2, 0.75, 1.9)
-    bar = read_per_policy(results / "atp_resolved_timing_open_loop_cuda_per_seed.csv")
-    ended = [
-        {row["seed"] % 1000 for row in rows if row["success"]}
-        for rows in (kept, bar["every 5 from 4"])
+    assert [[g2[i][k] for k in metrics] for i in "246"] == [
+        [g3[i][k] for k in metrics] for i in "246"
     ]
-    assert sorted(ended[0] - ended[1]) == [9, 10] and sorted(ended[1] - ended[0]) == [5, 14, 17, 19]
+    assert (g1["6"]["return"], g2["6"]["return"], g3["8"]["return"]) == ("373.85", "349.1", "396.5")
+    bar = read_per_policy(results / "atp_resolved_timing_open_loop_cuda_per_seed.csv")
+    bar_ended = {row["seed"] % 1000 for row in bar["every 5 from 4"] if row["success"]}
+    for table, iteration, episodes, expected, only_kept, only_bar in [
+        ("atp_resolved_timing_gpu_agent", 7, 448, (346.2, 0.75, 1.9), [9, 10], [5, 14, 17, 19]),
+        ("atp_resolved_timing_gpu_g3_agent", 9, 576, (441.7, 0.95, 1.9), [1, 9, 10], [5]),
+    ]:
+        counters = read(results / f"{table}.torchrl", {"counters": True})["counters"]
+        assert (counters["iteration"], counters["episodes"]) == (iteration, episodes)
+        kept = read_per_policy(results / f"{table}_eval.csv")["greedy DQN"]
+        cpu = read_per_policy(results / f"{table}_cpu_eval.csv")["greedy DQN"]
+        assert cpu == kept  # DOLFINx/PETSc in float64 on 2 CPU ranks: the GPU's float32 episodes
+        means = mean_metrics(kept)
+        assert (round(means["return"], 2), means["success"], means["shocks"]) == expected
+        ended = {row["seed"] % 1000 for row in kept if row["success"]}
+        assert sorted(ended - bar_ended) == only_kept and sorted(bar_ended - ended) == only_bar
 
 
 def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
@@ -1178,6 +1190,14 @@ ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's ru
             [f"overrides={ON_THE_CPU}"],
             marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
         ),
+        pytest.param(
+            "atp_resolved_timing_gpu_g3_agent.torchrl",  # the table's row, on the draw G2 fails
+            "atp_resolved_timing_gpu_g3_agent_eval.csv",
+            [1],
+            "any CPU",
+            [f"overrides={ON_THE_CPU}"],
+            marks=[pytest.mark.resolved, pytest.mark.timeout(1200)],
+        ),
     ],
 )
 def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
@@ -1198,9 +1218,10 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     its batch), and on another one row may differ (up to 3 in 20); the probe run's agent, a
     refit and the GPU run's agent (trained on a GPU, its table from this kind of CPU)
     likewise. The first agent's row (~20 s), the timing agent's 20 draws (~100 s), the 2 draws
-    of the probe agent, the refit and the GPU run, and the resolved agents' first rows (1000 x
-    1000, with its induction: ~5 min on 2 ranks; G2's on DOLFINx in float64, where its table
-    came from the GPU in float32) run with ``make test-resolved``, outside ``make test``."""
+    of the probe agent, the refit and the GPU run, and the resolved agents' rows (1000 x 1000,
+    with its induction: ~5 min on 2 ranks; R1's and G2's first, G3's on draw 01, which G2
+    fails; G2's and G3's on DOLFINx in float64, where their tables came from the GPU in
+    float32) run with ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
