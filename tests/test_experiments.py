@@ -648,7 +648,8 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
     347.50, 75%, 1.80 shocks) but for the third schedule's (292.65, 65%: it loses draw 06), and
     5 of the 80 episodes change outcome: the bar's on draws 06 and 10, G2's on 10 and 14 and
     the third schedule's on 06. G3's kept policy, on the 12 of its draws run so far, loses 4
-    it ends at 1000 x 1000 (01, 10, 11, 17): its lead over the bar there does not hold
+    it ends at 1000 x 1000 (01, 10, 11, 17), 263.08, 58%, 2.17 shocks against the bar's
+    327.08, 75% on those draws: its lead over the bar there does not hold
     (experiments/results/README.md). The bar's episode on draw 10
     at 4000 x 4000 (``atp_resolved_timing_4000/``) is its 2000 x 2000 row, and so are G2's on
     draws 10 and 14 and the third schedule's on draw 06; the bar's on draw 06 ends there, as at
@@ -725,6 +726,18 @@ def test_resolved_timing_episodes_at_2000_cells_are_the_results_tables():
         (292.65, 0.65, 2.0),
         (347.5, 0.75, 1.8),
     ]
+    g3 = read_per_policy(fine / "atp_resolved_timing_gpu_g3_agent_eval_2000.csv")["greedy DQN"]
+    bar_on_g3_draws = [
+        {k: float(r[k]) for k in metrics}
+        for r in rows
+        if r["policy"] == "every5from4" and int(r["seed"]) in {x["seed"] for x in g3}
+    ]
+    means = [mean_metrics(per_seed) for per_seed in (g3, bar_on_g3_draws)]
+    assert [(round(m["return"], 2), round(m["success"], 2)) for m in means] == [
+        (263.08, 0.58),
+        (327.08, 0.75),
+    ]
+    assert round(means[0]["shocks"], 2) == 2.17
     # a third grid for the bar on draw 10 (it failed it at 1000, ended it at 2000): as at 2000;
     # on draw 06 (ended at 1000, failed at 2000): ended, as at 1000; and for every 6th from 4
     # on draw 06 (ended at 1000, failed at 2000): as at 2000
