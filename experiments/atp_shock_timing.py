@@ -212,9 +212,9 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
     labels), :func:`kept` in ``<out>/atp_shock_timing_observe_<tag>.pt`` with the overrides
     (other overrides under the same tag are refused); then the reference's
     leave-one-draw-out choice (the neighbours on the readings and the decision) with those
-    readings and the stored single-shock labels, beside the labels' own readings, on the first
-    24, 48, 72 and all labelled draws (does the choice improve with more draws?), into
-    ``atp_shock_timing_observe_<tag>.txt``."""
+    readings and the stored single-shock labels, beside the labels' own readings and both
+    together, on the first 24, 48, 72 and all labelled draws (does the choice improve with more
+    draws?), into ``atp_shock_timing_observe_<tag>.txt``."""
     seeds, x, y, never = load_labels(out)
     with leader_env(replicas, overrides) as (decisions, env):
         if env is None:
@@ -245,7 +245,12 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
         f"{int((stored['never'].numpy() == never).sum())}; hindsight best single shock: "
         + ", ".join(f"first {n} draws {y[:n].max(1).mean():.1%}" for n in sizes)
     )
-    for name, inputs in (("the labels' readings", x), (f"{tag}'s", features(readings))):
+    both = features(np.concatenate([x[..., :-1], readings], -1))
+    for name, inputs in (
+        ("the labels' readings", x),
+        (f"{tag}'s", features(readings)),
+        (f"the labels' and {tag}'s", both),
+    ):
         chosen = [(n, *choose(inputs[:n], y[:n], never[:n])) for n in sizes]
         lines.append(
             f"{name} ({inputs.shape[-1] - 1} readings), decision: "

@@ -79,6 +79,12 @@ ROWS = [
     ("train", ["env.mesh.cells=0"], "env.mesh.cells must be an integer >= 1"),
     ("train", ["env.levels=[5,-5]"], "env.levels must be a pair [low, high] with low <= high"),
     ("train", ["observation.centre=[0]"], "observation.centre must have 2 entries"),
+    (
+        "train",
+        ["observation.variable=w"],  # the default env: heat, whose only variable is u
+        "observation.variable 'w' does not fit the heat task: it simulates u",
+    ),
+    ("train", ["env=ms", "observation.variable=v"], "observation.variable 'v' does not fit the"),
     # empty and huge values
     ("train", ["eval.seeds=[]"], "eval.seeds must list at least one seed"),
     ("train", ["agent.network.inputs=[]"], "agent.network.inputs must name at least one"),

@@ -33,7 +33,7 @@ def test_same_seed_same_trajectory_on_1_and_2_ranks():
     result = json.loads(line[len("RESULT ") :])
     assert result["ranks"] == 2
     two, one = result["parallel"], result["serial"]
-    for task in ("heat", "atp"):
+    for task in ("heat", "atp", "atp_w"):
         assert len(one[task]) == len(two[task])
         for a, b in zip(one[task], two[task], strict=True):
             assert a["action"] == b["action"] and a["done"] == b["done"]
@@ -44,6 +44,10 @@ def test_same_seed_same_trajectory_on_1_and_2_ranks():
     # Different seeds gave different episodes (the comparison is not vacuous).
     starts = {episode["observation"][0][0] for episode in one["heat"]}
     assert len(starts) > 1
+    # The gate's readings are not the potential's (w in (0, 1]: normalised readings too).
+    gate = np.array(one["atp_w"][0]["observation"])
+    assert not np.allclose(gate, one["atp"][0]["observation"][: len(gate)])
+    assert -1e-6 <= gate.min() and gate.max() <= 1 + 1e-6
 
 
 @pytest.fixture(scope="module")

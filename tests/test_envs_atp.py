@@ -29,7 +29,8 @@ from physicsrl.envs.baselines import (
 from physicsrl.envs.members import member_seed
 from physicsrl.envs.snapshots import SnapshotCache
 from physicsrl.evaluation import run_episode
-from physicsrl.fem.integrals import WeightedIntegrals
+from physicsrl.fem.errors import InvalidValue
+from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 
 
 def atp_env(*overrides, seed=0):
@@ -176,6 +177,27 @@ def test_catheter_is_mesh_independent(cell_type):
         )
     np.testing.assert_allclose(readings[60], readings[240], rtol=0.05)
     np.testing.assert_allclose(readings[60], readings[240], rtol=0.005)
+
+
+def test_integrals_of_two_variables_are_one_reduction_of_each_own_rows():
+    """Rows that weigh u and rows that weigh w, in one call: for linear u and w the catheter
+    reads 2 pi / mu^2 times each at the electrodes, and the domain's integral of u is exact."""
+    domain = mesh.create_rectangle(MPI.COMM_WORLD, [[-50, -50], [50, 50]], [30, 30])
+    V = fem.functionspace(domain, ("Lagrange", 1))
+    catheter = Catheter()
+    rows = np.vstack([form_rows(V, [1.0]), catheter.rows(V), catheter.rows(V)])
+    integrals = WeightedIntegrals(V, rows, [0] * 21 + [1] * 20)
+    u, w = fem.Function(V), fem.Function(V)
+    u.interpolate(lambda x: 2 + 0.01 * x[0] - 0.02 * x[1])
+    w.interpolate(lambda x: 0.5 - 0.003 * x[0] + 0.004 * x[1])
+    values = integrals(u, w)
+    x, y = catheter.positions().T
+    kernel = 2 * np.pi / 33**2
+    assert values[0] == pytest.approx(2 * 100**2, rel=1e-12)
+    np.testing.assert_allclose(values[1:21], kernel * (2 + 0.01 * x - 0.02 * y), rtol=1e-10)
+    np.testing.assert_allclose(values[21:], kernel * (0.5 - 0.003 * x + 0.004 * y), rtol=1e-10)
+    with pytest.raises(InvalidValue, match="expected 2 functions, got 1"):
+        integrals(u)
 
 
 def test_shock_region_is_a_cell_average_of_the_disk():

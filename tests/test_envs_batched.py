@@ -211,6 +211,7 @@ CROSS_FIELD = (
         ("explicit", "6.0", ()),
         ("implicit", "[3.0,9.0]", ()),
         ("explicit", "6.0", CROSS_FIELD),
+        ("explicit", "6.0", ("observation.variable=w",)),
     ],
 )
 def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme, rest, induction):
@@ -220,8 +221,8 @@ def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme, rest, induct
     rounding of the observation (relative 1e-5) plus an absolute 1e-8 for the implicit scheme
     (CG at rtol 1e-10 against the direct solve; readings are up to 1e-2) and 1e-12 for the
     explicit one (the same arithmetic in another order); also with a rest drawn per reset (the
-    replicas then rest for different times), and with the cross-field induction (S2 after a
-    drawn delay, then a drawn rest)."""
+    replicas then rest for different times), with the cross-field induction (S2 after a
+    drawn delay, then a drawn rest), and with the catheter reading the gate w."""
     extra = (f"env.model.scheme={scheme}", f"env.reset.rest_time={rest}", *induction)
     env = batched(2, extra=extra)
     reference = make_env(load_config("ms", "catheter", "atp", [*SMALL, *extra]), Coordinator())

@@ -50,15 +50,11 @@ def check_run(cfg) -> None:
     if cfg.env.get("factory"):
         check_memory(config, {}, n_actions=2)
         return
-    from physicsrl.checks import build, plain
-    from physicsrl.envs import OBSERVATIONS, REWARDS, TASKS
+    from physicsrl.checks import plain
+    from physicsrl.envs.factory import parts
     from physicsrl.envs.task import SquareMesh
 
-    groups = plain(cfg)
-    observation = build(*OBSERVATIONS.lookup(groups["observation"]), "observation")
-    reward = build(*REWARDS.lookup(groups["reward"]), "reward")
-    task, settings = TASKS.lookup(groups["env"])
-    task_config = build(task.Config, settings, "env")
+    observation, reward, task, task_config = parts(plain(cfg))
     if reward.events - task.events:
         raise ValueError(
             f"reward={reward.name} does not fit the {task.name} task: it reads the events "

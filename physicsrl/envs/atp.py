@@ -334,6 +334,7 @@ class ATPTask(Task):
     n_actions: ClassVar[int] = 2
     events: ClassVar[frozenset[str]] = frozenset({"shock", "success", "failure", "steps"})
     flags: ClassVar[tuple[str, ...]] = ("success",)
+    variables: ClassVar[tuple[str, ...]] = ("u", "w")
     action_counts = {"shocks": 1}
 
     @staticmethod  # the replicas of the torch backend use the class's hooks
@@ -351,7 +352,9 @@ class ATPTask(Task):
         self.register_coordinator(coordinator)
         V = self.simulator.V
         # Row 0: the integral of u over the domain (success test); then the observation's rows.
-        self.integrals = WeightedIntegrals(V, np.vstack([form_rows(V, [1.0]), observation.rows(V)]))
+        rows = np.vstack([form_rows(V, [1.0]), observation.rows(V)])
+        read = self.variables.index(observation.variable)
+        self.integrals = WeightedIntegrals(V, rows, [0] + [read] * observation.size)
         degree = config.region_quadrature_degree
         self.stimulus = CellAverage(domain, rectangle_above, 3, degree)
         shock = config.shock
@@ -440,7 +443,7 @@ class ATPTask(Task):
             self.snapshots.put(key, self.simulator.u_n().x.array, self.simulator.w_n().x.array)
             self.simulator.problem.t = self._start_time(key)  # as a restored reset's, exactly
         self.decisions = self.intervals = 0
-        return self.integrals(self.simulator.u_n())[1:]
+        return self.integrals_now()[1:]
 
     @parallel
     def prefill(self, draws: list[tuple[float, float, float]]) -> int:
@@ -450,6 +453,9 @@ class ATPTask(Task):
             if tuple(key) not in self.snapshots and self.reset(*key) is not None:
                 induced += 1
         return induced
+
+    def integrals_now(self) -> np.ndarray:
+        return self.integrals(self.simulator.u_n(), self.simulator.w_n())
 
     def _run(self, duration: float) -> None:
         """Advance ``duration`` rounded to a whole number of steps (50 / 0.03 is not whole)."""
@@ -477,13 +483,13 @@ class ATPTask(Task):
         self.intervals += 1
         try:
             self._advance(shock)
-            values = self.integrals(self.simulator.u_n())
+            values = self.integrals_now()
             success = values[0] < self.config.success_threshold
             if not success and self.decisions >= self.config.max_decisions:
                 for _ in range(self.config.extra_waits):
                     self._advance(False)
                     self.intervals += 1
-                    values = self.integrals(self.simulator.u_n())
+                    values = self.integrals_now()
                     if success := values[0] < self.config.success_threshold:
                         break
         except SimulationDiverged:

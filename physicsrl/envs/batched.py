@@ -100,8 +100,12 @@ class BatchedATPEnv(Members):
         ahead = model.induce_ahead
         self.induce_ahead = sim.device.type == "cuda" if ahead == "auto" else ahead
         V = sim.V
-        rows = np.vstack([form_rows(V, [1.0]), observation.rows(V)])  # row 0: integral of u
-        self.rows = sim.tensor(rows)
+        # row 0: the integral of u; then the observation's rows, of the variable it reads
+        integral, readings = form_rows(V, [1.0]), observation.rows(V)
+        if observation.variable == "u":
+            self.rows = {"u": sim.tensor(np.vstack([integral, readings]))}
+        else:
+            self.rows = {"u": sim.tensor(integral), observation.variable: sim.tensor(readings)}
         degree = config.region_quadrature_degree
         self.stimulus = CellAverage(domain, rectangle_above, 3, degree)
         shock = config.shock
@@ -157,9 +161,12 @@ class BatchedATPEnv(Members):
     # the simulation ----------------------------------------------------------------------
     def _integrals(self, rows: torch.Tensor | None) -> np.ndarray:
         """(replicas, K) of the replicas ``rows`` (None: all): row 0 the integral of u, then
-        the observation."""
-        u = self.u if rows is None else self.u[rows]
-        return per_replica(self.rows, u).double().cpu().numpy()
+        the observation (of u or w)."""
+        state, values = {"u": self.u, "w": self.w}, []
+        for variable, matrix in self.rows.items():
+            x = state[variable] if rows is None else state[variable][rows]
+            values.append(per_replica(matrix, x))
+        return torch.cat(values, dim=1).double().cpu().numpy()
 
     def _run(self, u, w, current, duration: float) -> torch.Tensor:
         return self.simulator.advance(u, w, current, self.simulator.steps(duration))

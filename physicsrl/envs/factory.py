@@ -79,7 +79,7 @@ def builds_env(cfg: Mapping | Any, leader: bool) -> bool:
 
 def parts(cfg: dict) -> tuple:
     """(observation, reward, task class, task config) of a plain ``cfg``; ValueError naming a
-    missing group or a bad setting."""
+    missing group, a bad setting or an observation of a variable the task does not simulate."""
     for group in ("env", "observation", "reward"):
         if group not in cfg:
             raise ValueError(
@@ -88,4 +88,9 @@ def parts(cfg: dict) -> tuple:
     observation = build(*OBSERVATIONS.lookup(cfg["observation"]), "observation")
     reward = build(*REWARDS.lookup(cfg["reward"]), "reward")
     task_class, settings = TASKS.lookup(cfg["env"])
+    if observation.variable not in task_class.variables:
+        raise ValueError(
+            f"observation.variable {observation.variable!r} does not fit the {task_class.name} "
+            f"task: it simulates {', '.join(task_class.variables)}"
+        )
     return observation, reward, task_class, build(task_class.Config, settings, "env")

@@ -1,9 +1,13 @@
-r"""Observations: what the agent sees, as fixed linear functionals of the field ``u``.
+r"""Observations: what the agent sees, as fixed linear functionals of one state variable.
 
 An observation is a small frozen dataclass (its fields are the YAML settings of
 ``conf/observation/<name>.yaml``) registered in :data:`OBSERVATIONS`. It contributes ``size``
 rows to the task's :class:`~physicsrl.fem.integrals.WeightedIntegrals`, so observing costs one
 matrix-vector product and one ``Allreduce`` per step, together with the task's own integrals.
+The rows weigh the variable ``variable`` names: ``u`` (every task's field: the temperature, the
+transmembrane potential), or another that the task simulates (``Task.variables``: the
+Mitchell-Schaeffer gate ``w`` of the ATP task, which no electrode can read: a diagnostic of
+what the agent would gain from it).
 To add one: subclass :class:`Observation`, decorate it with ``@OBSERVATIONS.register("name")``,
 implement :meth:`Observation.rows`, and add the YAML.
 """
@@ -12,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from dolfinx import fem
@@ -23,10 +28,14 @@ from physicsrl.fem.integrals import form_rows, point_rows, quadrant_weights
 OBSERVATIONS = Registry("observation")
 
 
+@dataclass(frozen=True)
 class Observation:
-    """Base class: ``size`` numbers, each :math:`\\int_\\Omega g_k u\\,dx` for fixed g_k."""
+    """Base class: ``size`` numbers, each :math:`\\int_\\Omega g_k v\\,dx` for fixed g_k, v
+    the variable ``variable`` (``u``; checked against the task's ``variables`` by
+    :func:`~physicsrl.envs.factory.parts`)."""
 
-    name: str
+    name: ClassVar[str]
+    variable: str = "u"
 
     @property
     def size(self) -> int:

@@ -99,7 +99,8 @@ class Task(Coordinated):
     """Base class of the simulator side of a task (see the module docstring).
 
     Subclasses set ``n_actions``, ``events`` (the event keys their transitions carry),
-    ``flags`` (boolean keys copied into the tensordict), ``max_steps`` and ``observation``, and
+    ``flags`` (boolean keys copied into the tensordict), ``variables`` (the state's variables
+    an observation may read; default u), ``max_steps`` and ``observation``, and
     implement :meth:`draw`, :meth:`reset` and :meth:`step` (both ``@parallel``).
 
     Hooks for the command line, which knows no task by name: ``action_counts`` (metric name ->
@@ -111,6 +112,7 @@ class Task(Coordinated):
     n_actions: ClassVar[int]
     events: ClassVar[frozenset[str]]
     flags: ClassVar[tuple[str, ...]] = ()
+    variables: ClassVar[tuple[str, ...]] = ("u",)  # what an observation may read
     action_counts: ClassVar[dict[str, int]] = {}
     max_steps: int
 
@@ -140,13 +142,18 @@ class Task(Coordinated):
         """Apply ``action`` and advance to the next decision."""
         raise NotImplementedError
 
+    def integrals_now(self) -> np.ndarray:
+        """``self.integrals`` of the state now: of u, and of the other ``variables`` for a task
+        that simulates more. Collective."""
+        return self.integrals(self.simulator.u_n())
+
     @parallel
     def field(self) -> tuple[np.ndarray, np.ndarray, float] | None:
         """The field u now, gathered for plotting: dof coordinates (N, 2), values (N,) of all
         ranks and the integral of u, on the leader; None on the others. Expects
         ``self.simulator.u_n()`` and ``self.integrals`` (row 0: the integral of u)."""
         u = self.simulator.u_n()
-        integral = float(self.integrals(u)[0])
+        integral = float(self.integrals_now()[0])
         V = u.function_space
         n = V.dofmap.index_map.size_local
         local = np.column_stack([V.tabulate_dof_coordinates()[:n, :2], u.x.array[:n]])

@@ -20,7 +20,9 @@ The rows of :math:`B` (owned dofs of this rank) are computed once, by one of two
 
 :class:`WeightedIntegrals` stacks rows of both kinds: every evaluation is one dense product
 with the owned entries of :math:`u` and one ``Allreduce`` of K numbers, identical up to rounding
-on any number of ranks.
+on any number of ranks. Rows may weigh different functions on the same space (``variables``:
+row k integrates the function ``variables[k]`` of the call, e.g. u and the gate w of a
+two-variable model), still with one ``Allreduce``.
 
 Weights that are indicators of regions should be UFL conditionals on
 :func:`ufl.SpatialCoordinate` (:func:`quadrant_weights`): evaluated at quadrature points inside
@@ -118,27 +120,45 @@ def point_rows(V: fem.FunctionSpace, points: np.ndarray, weights: np.ndarray) ->
 
 
 class WeightedIntegrals:
-    """``integrals(u)`` -> array (K,) of :math:`(B u)_k` for fixed rows :math:`B`.
+    """``integrals(u, ...)`` -> array (K,) of :math:`(B v_k)_k` for fixed rows :math:`B`, where
+    :math:`v_k` is the function ``variables[k]`` of the call (default: every row the first).
 
     ``rows`` has shape (K, owned dofs of ``V``), e.g. stacked :func:`form_rows` and
     :func:`point_rows`. Memory: K x (owned dofs) doubles per rank.
     """
 
-    def __init__(self, V: fem.FunctionSpace, rows: np.ndarray):
+    def __init__(self, V: fem.FunctionSpace, rows: np.ndarray, variables: Sequence[int] = ()):
         self.V = V
-        self.rows = np.ascontiguousarray(rows, dtype=float)
-        if self.rows.ndim != 2 or self.rows.shape[1] != _owned(V):
-            raise InvalidValue(f"rows: expected shape (K, {_owned(V)}), got {self.rows.shape}")
-        self._local = np.empty(self.rows.shape[0])
+        rows = np.ascontiguousarray(rows, dtype=float)
+        if rows.ndim != 2 or rows.shape[1] != _owned(V):
+            raise InvalidValue(f"rows: expected shape (K, {_owned(V)}), got {rows.shape}")
+        variables = np.asarray(variables if len(variables) else [0] * len(rows), dtype=int)
+        if variables.shape != (len(rows),) or variables.min(initial=0) < 0:
+            raise InvalidValue(f"variables: expected {len(rows)} indices >= 0, got {variables}")
+        self.owned = rows.shape[1]
+        self.functions = int(variables.max(initial=0)) + 1
+        # (function, its rows' places, their weights): one product per function
+        self.blocks = [
+            (
+                j,
+                np.flatnonzero(variables == j),
+                rows if self.functions == 1 else rows[variables == j],
+            )
+            for j in range(self.functions)
+        ]
+        self._local = np.empty(len(rows))
 
-    def __call__(self, u: fem.Function) -> np.ndarray:
-        """The K integrals of ``u`` (a function on ``V``), the same array on every rank.
+    def __call__(self, *functions: fem.Function) -> np.ndarray:
+        """The K integrals of ``functions`` (each on ``V``), the same array on every rank.
 
-        Collective: one product and one ``Allreduce`` of K doubles.
+        Collective: one product per function and one ``Allreduce`` of K doubles.
         """
-        if u.function_space != self.V:
+        if len(functions) < self.functions:
+            raise InvalidValue(f"expected {self.functions} functions, got {len(functions)}")
+        if any(f.function_space != self.V for f in functions):
             raise InvalidValue("u: the function does not live on the weights' function space")
-        np.matmul(self.rows, u.x.array[: self.rows.shape[1]], out=self._local)
+        for j, places, rows in self.blocks:
+            self._local[places] = rows @ functions[j].x.array[: self.owned]
         result = np.empty_like(self._local)
         self.V.mesh.comm.Allreduce(self._local, result, op=MPI.SUM)
         return result

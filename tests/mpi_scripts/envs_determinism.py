@@ -1,7 +1,7 @@
-"""Run both tasks (small configs) with fixed seeds and a seeded random policy on all ranks of
-the job, then again on the leader alone (``COMM_SELF``: the serial reference, in the same job
-to save a launch). The leader prints ``RESULT <json>`` with both runs' observations, actions,
-rewards and flags; the test compares them."""
+"""Run both tasks (small configs; the ATP task also observing w) with fixed seeds and a seeded
+random policy on all ranks of the job, then again on the leader alone (``COMM_SELF``: the
+serial reference, in the same job to save a launch). The leader prints ``RESULT <json>`` with
+both runs' observations, actions, rewards and flags; the test compares them."""
 
 import json
 
@@ -39,9 +39,16 @@ def run(comm):
     coordinator = Coordinator(comm)
     heat = make_env(load_config("heat", "quadrants", "heat_stop", HEAT), coordinator)
     atp = make_env(load_config("ms", "catheter", "atp", ATP), coordinator)
+    gate = make_env(
+        load_config("ms", "catheter", "atp", [*ATP, "observation.variable=w"]), coordinator
+    )
     with coordinator:
         if coordinator.is_leader():
-            return {"heat": episodes(heat, [0, 1, 2]), "atp": episodes(atp, [0, 1])}
+            return {
+                "heat": episodes(heat, [0, 1, 2]),
+                "atp": episodes(atp, [0, 1]),
+                "atp_w": episodes(gate, [0]),
+            }
 
 
 with abort_on_error():
