@@ -49,6 +49,7 @@ those where it failed? From ``second --first D``'s readings (``atp_shock_timing_
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 from contextlib import contextmanager
@@ -214,7 +215,8 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
     leave-one-draw-out choice (the neighbours on the readings and the decision) with those
     readings and the stored single-shock labels, beside the labels' own readings and both
     together, on the first 24, 48, 72 and all labelled draws (does the choice improve with more
-    draws?), into ``atp_shock_timing_observe_<tag>.txt``."""
+    draws?), and the draws that the rule on all draws ends with one input and not the other
+    (:func:`paired`), into ``atp_shock_timing_observe_<tag>.txt``."""
     seeds, x, y, never = load_labels(out)
     with leader_env(replicas, overrides) as (decisions, env):
         if env is None:
@@ -246,6 +248,7 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
         + ", ".join(f"first {n} draws {y[:n].max(1).mean():.1%}" for n in sizes)
     )
     both = features(np.concatenate([x[..., :-1], readings], -1))
+    ended = {}  # name -> whether each draw ends, its rule chosen on all draws (each left out)
     for name, inputs in (
         ("the labels' readings", x),
         (f"{tag}'s", features(readings)),
@@ -258,8 +261,26 @@ def observe(out: Path, tag: str, replicas: int, overrides: list[str]) -> None:
                 f"first {n} draws {s:.1%} (neighbours {k}, theta {t})" for n, k, t, s in chosen
             )
         )
+        k, theta = chosen[-1][1:3]
+        p = leave_one_draw_out(inputs, y, partial(Neighbours, k=k))
+        ended[name] = outcomes(p, y, never, theta) > 0
+    lines.append(
+        paired(ended[f"{tag}'s"], ended["the labels' readings"], f"{tag}'s", "the labels'")
+    )
     print("\n".join(lines[2:]), flush=True)
     (out / f"atp_shock_timing_observe_{tag}.txt").write_text("\n".join(lines) + "\n")
+
+
+def paired(a: np.ndarray, b: np.ndarray, name_a: str, name_b: str) -> str:
+    """The draws that rule a ends and rule b fails, and the reverse, with the two-sided sign
+    test's p of that split (a, b: (draws,) booleans)."""
+    only_a, only_b = int((a & ~b).sum()), int((b & ~a).sum())
+    n, low = only_a + only_b, min(only_a, only_b)
+    p = min(1.0, 2 * sum(math.comb(n, i) for i in range(low + 1)) / 2**n)
+    return (
+        f"paired, on all draws: {name_a} rule alone ends {only_a}, {name_b} alone {only_b} "
+        f"(two-sided sign test p = {p:.3f})"
+    )
 
 
 def recurrence(y: np.ndarray, lags: int = 15) -> str:

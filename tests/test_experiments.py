@@ -920,6 +920,7 @@ def test_shock_timing_script_labels_draws_and_fits_a_policy(tmp_path):
     assert lines[3].startswith("the labels' readings (20 readings), decision: ")
     assert lines[4].startswith("basket's (50 readings), decision: ")
     assert lines[5].startswith("the labels' and basket's (70 readings), decision: ")
+    assert lines[6].startswith("paired, on all draws: basket's rule alone ends ")
     # second: labels where every single shock works but draw 0's, so that the chosen policy
     # shocks draw 0 at decision 0 (the others' labels say it works) and fails
     chunk["single"] = torch.ones_like(chunk["single"])
@@ -1029,7 +1030,7 @@ def test_observe_table_comes_from_the_stored_readings(tmp_path, tag):
     command[command.index("--out") + 1] = str(tmp_path)
     run_script("atp_shock_timing.py", *command)
     lines = (tmp_path / f"atp_shock_timing_observe_{tag}.txt").read_text().splitlines()
-    assert lines[2:] == stored[2:] and len(lines) == 6
+    assert lines[2:] == stored[2:] and len(lines) == 7
     readings = torch.load(tmp_path / f"atp_shock_timing_observe_{tag}.pt")["readings"]
     pentaray = torch.load(R35_LABELLED / "atp_shock_timing_observe_pentaray.pt")["readings"]
     if tag == "basket80":
