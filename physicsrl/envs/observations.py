@@ -15,7 +15,7 @@ implement :meth:`Observation.rows`, and add the YAML.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
@@ -35,7 +35,8 @@ class Observation:
     :func:`~physicsrl.envs.factory.parts`)."""
 
     name: ClassVar[str]
-    variable: str = "u"
+    # keyword-only, so that a subclass may declare fields without defaults
+    variable: str = field(default="u", kw_only=True)
 
     @property
     def size(self) -> int:
