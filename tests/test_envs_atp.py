@@ -4,6 +4,7 @@ import json
 import math
 import subprocess
 import sys
+from dataclasses import dataclass
 
 import dolfinx_solver  # noqa: F401 (loads MPI before dolfinx)
 import numpy as np
@@ -18,7 +19,7 @@ from torchrl.envs.utils import check_env_specs
 
 from physicsrl.config import held_out_seeds
 from physicsrl.coordinated import Coordinator
-from physicsrl.envs import ATPReward, Catheter, load_config, make_env
+from physicsrl.envs import ATPReward, Catheter, Observation, load_config, make_env
 from physicsrl.envs.baselines import (
     Constant,
     EveryKth,
@@ -177,6 +178,15 @@ def test_catheter_is_mesh_independent(cell_type):
         )
     np.testing.assert_allclose(readings[60], readings[240], rtol=0.05)
     np.testing.assert_allclose(readings[60], readings[240], rtol=0.005)
+
+
+def test_an_observation_reads_u_unless_told_and_its_subclass_may_require_fields():
+    @dataclass(frozen=True)
+    class Probe(Observation):
+        point: tuple[float, float]  # no default: the base's variable is keyword-only
+
+    assert Probe((1.0, 2.0)).variable == "u" == Catheter().variable
+    assert Probe((1.0, 2.0), variable="w").variable == "w"
 
 
 def test_integrals_of_two_variables_are_one_reduction_of_each_own_rows():
