@@ -132,7 +132,7 @@ class HeatTask(Task):
         self.simulator.reset()
         self.simulator.set_initial_condition(float(level))
         self.steps = 0
-        return self.integrals(self.simulator.u_n())[1:]
+        return self.integrals_now()[1:]
 
     @parallel
     def step(self, action: int) -> Transition:
@@ -147,7 +147,7 @@ class HeatTask(Task):
                 events = {"advanced": False, "ended": False, "integral": 0.0}
                 observation = np.zeros(self.observation.size)
                 return Transition(observation, events, self.steps, truncated=True, diverged=True)
-        values = self.integrals(self.simulator.u_n())
+        values = self.integrals_now()
         ended = not advanced or self.steps >= self.max_steps
         events = {"advanced": advanced, "ended": ended, "integral": float(values[0])}
         return Transition(values[1:], events, self.steps, terminated=ended)
@@ -157,7 +157,7 @@ class HeatTask(Task):
         """Observations (max_steps + 1, size) and domain integrals (max_steps + 1,) after
         k = 0 .. max_steps advances from ``level`` (leaves the task mid-episode)."""
         observations = [self.reset(level)]
-        integrals = [self.integrals(self.simulator.u_n())[0]]
+        integrals = [self.integrals_now()[0]]
         for _ in range(self.max_steps):
             t = self.step(ADVANCE)
             observations.append(t.observation)

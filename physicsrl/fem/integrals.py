@@ -156,7 +156,7 @@ class WeightedIntegrals:
         if len(functions) < self.functions:
             raise InvalidValue(f"expected {self.functions} functions, got {len(functions)}")
         if any(f.function_space != self.V for f in functions):
-            raise InvalidValue("u: the function does not live on the weights' function space")
+            raise InvalidValue("functions: one does not live on the weights' function space")
         for j, places, rows in self.blocks:
             self._local[places] = rows @ functions[j].x.array[: self.owned]
         result = np.empty_like(self._local)
