@@ -1177,6 +1177,14 @@ ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's ru
             marks=pytest.mark.slow,  # the same kind of row as the run-2 agent's: make test-resolved
         ),
         pytest.param(
+            "atp_timing_r35_gate_agent.torchrl",  # its catheter reads the gate w
+            "atp_timing_r35_gate_agent_eval.csv",
+            [1, 18],  # the draws that end soonest (decisions 12 and 22 of 24)
+            "AVX512",
+            [],
+            marks=pytest.mark.slow,  # the same kind of row as the run-2 agent's: make test-resolved
+        ),
+        pytest.param(
             "atp_timing_r35_gpu_agent.torchrl",  # trained on a GPU, its rows from this CPU
             "atp_timing_r35_gpu_agent_eval.csv",
             [1, 10],
