@@ -1179,7 +1179,7 @@ ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's ru
         pytest.param(
             "atp_timing_r35_gate_agent.torchrl",  # its catheter reads the gate w
             "atp_timing_r35_gate_agent_eval.csv",
-            [1, 18],  # 2 of the 3 draws that end soonest (at decisions 12, 22 and 22 of 24)
+            [1, 15],  # the 2 draws that end soonest (at decisions 12 and 18 of 24)
             "AVX512",
             [],
             marks=pytest.mark.slow,  # the same kind of row as the run-2 agent's: make test-resolved
