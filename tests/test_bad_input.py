@@ -99,8 +99,9 @@ ROWS = [
     ("train", ["+agent.network.depth=3"], "unknown key 'agent.network.depth'"),
     ("train", ["env.nosuch=1"], "unknown key 'env.nosuch'"),
     ("train", ["reward.nosuch=1"], "unknown key 'reward.nosuch'"),
-    ("train", ["env=nosuch"], "env/nosuch"),
-    ("train", ["observation=nosuch"], "observation/nosuch"),
+    ("train", ["env=nosuch"], "env=nosuch: no such option (choose one of heat, ms, ms_resolved)"),
+    ("train", ["observation=nosuch"], "observation=nosuch: no such option (choose one of"),
+    ("train", ["+experiment=nosuch"], "experiment=nosuch: no such option (choose one of atp"),
     ("train", ["agent.network.inputs=[nosuchkey]"], "agent.network.inputs: 'nosuchkey'"),
     # unparsable syntax
     ("train", ["agent.network.hidden=[64,64"], "'agent.network.hidden=[64,64'"),

@@ -33,6 +33,10 @@ def one_line(error: BaseException) -> str:
         chain.append(seen)
         seen = seen.__cause__ or seen.__context__
     for item in chain:
+        missing = getattr(item, "missing_cfg_file", None)  # Hydra's MissingConfigException
+        if missing and getattr(item, "options", None):
+            group, _, name = missing.rpartition("/")
+            return f"{group}={name}: no such option (choose one of {', '.join(item.options)})"
         if getattr(item, "override", None):  # Hydra's OverrideParseException
             reason = str(item).splitlines()[0]
             return f"cannot parse the override '{item.override}': {reason}"
@@ -43,9 +47,7 @@ def one_line(error: BaseException) -> str:
                 return f"unknown key '{key}': {message}"
             return f"bad value for '{key}': {message}"
     message = " ".join(str(chain[-1]).split()).split(" Config search path")[0]
-    message = message or type(chain[-1]).__name__
-    first = " ".join(str(chain[0]).split())
-    return first if first and first != message and len(chain) == 1 else message
+    return message or type(chain[-1]).__name__
 
 
 def compose(config_name: str, overrides: list[str], hydra: bool = False):
