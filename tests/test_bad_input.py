@@ -135,6 +135,8 @@ ROWS = [
         "mpi.ranks_per_env=1, per rank)",
     ),
     # physicsrl-eval
+    ("eval", ["run=???"], "run is required"),  # as a command line without run=
+    ("eval", ["overrides=[env.dt=1]"], "quote the items that hold '=': overrides='[\"a=1\"]'"),
     ("eval", ["fps=0"], "fps must be a finite number > 0"),
     ("eval", ["fps=nan"], "fps must be a finite number > 0"),
     ("eval", ["seeds=[]"], "seeds must be N >= 1, a non-empty list of seeds >= 0, or null"),

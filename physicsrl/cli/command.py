@@ -17,7 +17,7 @@ import sys
 from collections.abc import Callable
 from typing import NoReturn
 
-from omegaconf import OmegaConf
+from omegaconf import MissingMandatoryValue, OmegaConf
 
 from physicsrl.guard import guard
 from physicsrl.launch import Job, refuse, relaunch, run_hydra
@@ -39,8 +39,13 @@ def one_line(error: BaseException) -> str:
             return f"{group}={name}: no such option (choose one of {', '.join(item.options)})"
         if getattr(item, "override", None):  # Hydra's OverrideParseException
             reason = str(item).splitlines()[0]
+            key, _, value = item.override.partition("=")
+            if "=" in value:  # Hydra reads an unquoted '=' as a second assignment
+                reason += f" (quote the items that hold '=': {key}='[\"a=1\"]')"
             return f"cannot parse the override '{item.override}': {reason}"
         key = getattr(item, "full_key", None)
+        if key and isinstance(item, MissingMandatoryValue):
+            return f"{key} is required"
         if key:
             message = str(item).splitlines()[0]
             if "not in" in message or "Could not append" in message or "Key '" in message:

@@ -22,14 +22,10 @@ from physicsrl.launch import output_dir
 def check(cfg, job) -> None:
     import importlib.util
 
-    from omegaconf import OmegaConf
-
     from physicsrl.launch import check_layout
     from physicsrl.run_directory import checkpoint_path
 
     check_layout(cfg.mpi.ranks_per_env, job.ranks)
-    if OmegaConf.is_missing(cfg, "run"):
-        raise ValueError("run is required: run=<run directory or checkpoint file>")
     checkpoint_path(str(cfg.run))  # a checkpoint file, or a run directory with one
     if cfg.fields and importlib.util.find_spec("adios2") is None:
         raise ValueError("fields=true reads the series back with adios2: pip install adios2")
