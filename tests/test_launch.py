@@ -236,6 +236,16 @@ def test_print_only_flags_print_once_under_two_ranks(tmp_path):
     assert info.returncode == 0 and info.stdout.count("Defaults List") == 1, info.stderr
 
 
+@pytest.mark.parametrize(
+    "command", [["physicsrl-train"], ["physicsrl-eval"], ["physicsrl-bench", "ping"]]
+)
+def test_help_says_what_the_command_does_once_under_two_ranks(tmp_path, command):
+    helped = run([str(BIN / command[0]), *command[1:], "--help", "mpi.ranks=2"], cwd=tmp_path)
+    assert helped.returncode == 0, helped.stderr
+    assert helped.stdout.startswith(" ".join(command)), helped.stdout[:200]
+    assert helped.stdout.count("--hydra-help lists Hydra's own flags") == 1, helped.stdout
+
+
 def test_configs_are_found_from_a_built_wheel(tmp_path):
     """Build the wheel, install it alone into a fresh venv, run the console script elsewhere.
 
