@@ -64,11 +64,18 @@ def test_mismatched_rank_request_is_a_one_line_error(tmp_path):
     assert "error: mpi.ranks=3, but the MPI launcher started 2 ranks" in result.stderr
 
 
-def test_unknown_benchmark_is_a_one_line_error(tmp_path):
-    result = run([str(BIN / "physicsrl-bench"), "pong"], cwd=tmp_path)
+@pytest.mark.parametrize(
+    "arguments, expected",
+    [
+        (["pong"], "unknown benchmark 'pong'"),
+        (["calls=10"], "calls=10: the first argument names the benchmark"),
+        (["-m", "ping", "calls=10,20"], "-m: the first argument names the benchmark"),
+    ],
+)
+def test_unknown_benchmark_is_a_one_line_error(tmp_path, arguments, expected):
+    result = run([str(BIN / "physicsrl-bench"), *arguments], cwd=tmp_path)
     assert result.returncode == 2
-    expected = "error: unknown benchmark 'pong'; choose one of ping, ms, env, groups"
-    assert result.stderr.strip() == expected
+    assert result.stderr.strip() == f"error: {expected}; choose one of ping, ms, env, groups"
 
 
 FAULTY_REWARD = """

@@ -125,7 +125,10 @@ def main() -> None:
         return
     name, overrides = arguments[0], arguments[1:]
     if name not in BENCHMARKS:
-        refuse(f"unknown benchmark {name!r}; choose one of {', '.join(BENCHMARKS)}")
+        choose = f"choose one of {', '.join(BENCHMARKS)}"
+        if "=" in name or name.startswith("-"):  # the name left out, or after a flag
+            refuse(f"{name}: the first argument names the benchmark; {choose}")
+        refuse(f"unknown benchmark {name!r}; {choose}")
     relaunch(overrides)
     guard()
     from physicsrl.cli.command import validate_or_exit
