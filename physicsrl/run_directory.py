@@ -118,8 +118,21 @@ def checkpoint_path(run: str) -> Path:
         return path
     latest = latest_checkpoint(path)
     if latest is None:
-        raise ValueError(f"run={run}: no checkpoint file there or under its checkpoints/")
+        raise ValueError(
+            f"run={run}: no checkpoint file there or under its checkpoints/{sweep_hint(path)}"
+        )
     return latest
+
+
+def sweep_hint(path: Path) -> str:
+    """``"; a sweep: name one of its jobs (0, 1)"`` where ``path`` holds a sweep's runs, else
+    ``""``: the end of a message that found no checkpoint directly under ``path``."""
+    names = sorted(
+        {p.relative_to(path).parts[0] for p in path.glob(JOBS)}, key=lambda n: (len(n), n)
+    )
+    if len(names) > 4:  # a sweep's jobs are 0, 1, 2, ...
+        names = [*names[:3], "...", names[-1]]
+    return f"; a sweep: name one of its jobs ({', '.join(names)})" if names else ""
 
 
 def is_checkpoint(path: Path) -> bool:
@@ -142,7 +155,9 @@ def find_run(resume: str, runs: Path) -> Path:
         if path.is_file():
             path = path.parent.parent
         if latest_checkpoint(path) is None:
-            raise FileNotFoundError(f"resume={resume}: no checkpoint under {path / 'checkpoints'}")
+            raise FileNotFoundError(
+                f"resume={resume}: no checkpoint under {path / 'checkpoints'}{sweep_hint(path)}"
+            )
         return path
     candidates = [d for d in (runs.iterdir() if runs.is_dir() else []) if latest_checkpoint(d)]
     if not candidates:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -57,7 +58,8 @@ def truncate(path, fraction: float = 0.5) -> None:
 def test_resume_finds_the_run_with_the_newest_checkpoint_or_names_what_has_none(tmp_path):
     """``resume=true``: of the runs beside this one, the one whose newest checkpoint was written
     last (not the newest run, nor the one with the most iterations); a run directory or one of
-    its checkpoint files: that run; a directory without checkpoints: one line naming it."""
+    its checkpoint files: that run; a directory without checkpoints: one line naming it, and
+    its jobs where it holds a sweep's runs (as ``physicsrl-eval run=`` does)."""
     runs = tmp_path / "outputs"
     for age, (name, iteration) in enumerate([("b", 8), ("c", 2), ("a", 4)]):  # a: written last
         checkpoint = runs / name / "checkpoints" / checkpoint_name(iteration)
@@ -72,6 +74,13 @@ def test_resume_finds_the_run_with_the_newest_checkpoint_or_names_what_has_none(
         find_run(str(runs / "d"), runs)
     with pytest.raises(FileNotFoundError, match="resume=true: no run with a checkpoint under"):
         find_run("true", runs / "d")
+    sweep = re.escape("; a sweep: name one of its jobs (a, b, c)")
+    with pytest.raises(
+        FileNotFoundError, match=rf"resume=.*/outputs: no checkpoint under .*{sweep}$"
+    ):
+        find_run(str(runs), tmp_path)
+    with pytest.raises(ValueError, match=rf"run=.*/outputs: no checkpoint file there .*{sweep}$"):
+        checkpoint_path(str(runs))
 
 
 def test_a_checkpoint_file_is_told_without_torch_as_torchrl_tells_it(tmp_path):
