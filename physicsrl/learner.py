@@ -22,12 +22,10 @@ from physicsrl.envs.members import Members
 from physicsrl.envs.task import ResetDiverged, Task
 from physicsrl.evaluation import compare
 from physicsrl.launch import sweeping
-from physicsrl.run_directory import find_run
+from physicsrl.run_directory import RESUMED, find_run
 from physicsrl.tables import format_table, provenance, rounded
 
 log = logging.getLogger("physicsrl.train")
-
-RESUMED = "resumed.txt"  # in the run directory of a command that continued another run
 
 
 def resume_point(config: TrainConfig, run_dir: Path) -> Path | None:

@@ -54,6 +54,7 @@ class WritableRunDirectory(Callback):
 
 
 RUN, JOBS = "checkpoints/ckpt-*", "*/checkpoints/ckpt-*"  # a run's, a sweep's checkpoints
+RESUMED = "resumed.txt"  # in the run directory of a command that continued another run
 CHECKPOINTS = (
     "a training run's checkpoints; resume=true continues it, a new run or an evaluation needs "
     "another directory"
@@ -118,15 +119,20 @@ def checkpoint_path(run: str) -> Path:
         return path
     latest = latest_checkpoint(path)
     if latest is None:
+        elsewhere = checkpoints_elsewhere(path)
         raise ValueError(
-            f"run={run}: no checkpoint file there or under its checkpoints/{sweep_hint(path)}"
+            f"run={run}: no checkpoint file there or under its checkpoints/{elsewhere}"
         )
     return latest
 
 
-def sweep_hint(path: Path) -> str:
-    """``"; a sweep: name one of its jobs (0, 1)"`` where ``path`` holds a sweep's runs, else
-    ``""``: the end of a message that found no checkpoint directly under ``path``."""
+def checkpoints_elsewhere(path: Path) -> str:
+    """Where the checkpoints are that the directory ``path``, which has none of its own, points
+    to, as the end of a one-line message: the run it resumed (its :data:`RESUMED`), or its jobs
+    if it holds a sweep's runs (``"; a sweep: name one of its jobs (0, 1)"``); else ``""``."""
+    resumed = path / RESUMED
+    if resumed.is_file():
+        return f"; {' '.join(resumed.read_text().split())}"
     names = sorted(
         {p.relative_to(path).parts[0] for p in path.glob(JOBS)}, key=lambda n: (len(n), n)
     )
@@ -155,8 +161,9 @@ def find_run(resume: str, runs: Path) -> Path:
         if path.is_file():
             path = path.parent.parent
         if latest_checkpoint(path) is None:
+            elsewhere = checkpoints_elsewhere(path)
             raise FileNotFoundError(
-                f"resume={resume}: no checkpoint under {path / 'checkpoints'}{sweep_hint(path)}"
+                f"resume={resume}: no checkpoint under {path}/checkpoints{elsewhere}"
             )
         return path
     candidates = [d for d in (runs.iterdir() if runs.is_dir() else []) if latest_checkpoint(d)]

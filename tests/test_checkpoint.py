@@ -153,6 +153,8 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     }
     assert sorted(p.name for p in second.iterdir()) == [".hydra", "resumed.txt", "train.log"]
     assert str(first) in (second / "resumed.txt").read_text()
+    with pytest.raises(ValueError, match=f"checkpoints/; this command resumed {first} from"):
+        checkpoint_path(str(second))  # physicsrl-eval run=<the resuming command's directory>
 
     mismatched = [str(MPIEXEC), "-n", "2", TRAIN, *SHORT, "mpi.ranks=2", f"resume={first}"]
     mismatched += [f"hydra.run.dir={tmp_path / 'two'}"]
