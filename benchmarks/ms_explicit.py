@@ -71,7 +71,7 @@ def decision_seconds(n: int) -> tuple[float, float, float]:
     from physicsrl.envs.atp import SHOCK, WAIT
 
     overrides = [f"env.mesh.cells={n}", "env.model.scheme=explicit", "env.snapshots.capacity=0"]
-    env = make_env(load_config("ms", "catheter", "atp", overrides), Coordinator())
+    env = make_env(load_config("ms", overrides=overrides), Coordinator())
     task, clock = env.task, time.perf_counter
     with task.coordinator:
         start = clock()

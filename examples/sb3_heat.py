@@ -26,9 +26,7 @@ def main() -> None:
     args = parser.parse_args()
 
     coordinator = Coordinator()
-    env = make_env(
-        load_config("heat", "quadrants", "heat_stop", args.overrides, args.seed), coordinator
-    )
+    env = make_env(load_config("heat", overrides=args.overrides, seed=args.seed), coordinator)
     with abort_on_error(), coordinator:  # followers serve the simulation until the leader leaves
         if not coordinator.is_leader():
             return

@@ -21,7 +21,7 @@ SMALL_HEAT = ["env.mesh.cells=16"]
 
 def heat_env(*overrides, seed=0):
     return make_env(
-        load_config("heat", "quadrants", "heat_stop", [*SMALL_HEAT, *overrides], seed),
+        load_config("heat", overrides=[*SMALL_HEAT, *overrides], seed=seed),
         Coordinator(),
     )
 
@@ -122,7 +122,7 @@ def test_heat_optimum_under_refinement_is_the_exact_series_one():
     returns = 16 + (levels[:, None] - 1) * transient - 0.1 * np.arange(11)
     errors = []
     for overrides in ([], ["env.mesh.cells=100", "env.dt=0.0025"]):
-        env = make_env(load_config("heat", "quadrants", "heat_stop", overrides, 0), Coordinator())
+        env = make_env(load_config("heat", overrides=overrides, seed=0), Coordinator())
         with env.task.coordinator:
             optimum = exact_optimum(env)
         np.testing.assert_array_equal(optimum.best_stop, returns.argmax(axis=1))
@@ -191,16 +191,15 @@ SHIPPED = Path(__file__).resolve().parents[1] / "conf"
 
 @pytest.mark.parametrize("option", sorted(p.stem for p in (SHIPPED / "env").glob("*.yaml")))
 def test_load_config_is_the_groups_hydra_composes(option):
-    """``load_config`` (no Hydra) gives every shipped env, with the observation and reward its
-    YAML chooses, exactly the groups ``physicsrl-train env=<option>`` composes: a variant's base
-    included (``ms_resolved`` on ``ms``)."""
+    """``load_config(option)`` (no Hydra) gives every shipped env exactly the groups
+    ``physicsrl-train env=<option>`` composes: the observation and reward its YAML chooses, and a
+    variant's base (``ms_resolved`` on ``ms``)."""
     from physicsrl.checks import plain
     from physicsrl.cli.command import compose
 
     composed = plain(compose("train", [f"env={option}"]))
     groups = ("env", "observation", "reward")
-    names = [composed["observation"]["name"], composed["reward"]["name"]]
-    loaded = plain(load_config(option, *names))
+    loaded = plain(load_config(option))
     assert {g: loaded[g] for g in groups} == {g: composed[g] for g in groups}
 
 

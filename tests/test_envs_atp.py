@@ -35,7 +35,7 @@ from physicsrl.fem.integrals import WeightedIntegrals, form_rows
 
 
 def atp_env(*overrides, seed=0):
-    config = load_config("ms", "catheter", "atp", [*SMALL_ATP, *overrides], seed)
+    config = load_config("ms", overrides=[*SMALL_ATP, *overrides], seed=seed)
     return make_env(config, Coordinator())
 
 
@@ -54,7 +54,7 @@ def test_atp_specs():
 
 
 def test_default_atp_config_is_the_reference_task():
-    cfg = load_config("ms", "catheter", "atp")
+    cfg = load_config("ms")
     assert cfg.env.mesh.cells == 60 and cfg.env.mesh.extent == 50 and cfg.env.model.dt == 0.03
     assert (cfg.env.decision_interval, cfg.env.max_decisions, cfg.env.extra_waits) == (50, 15, 20)
     assert list(cfg.env.shock.centre) == [0, 25] and cfg.env.shock.radius == 25

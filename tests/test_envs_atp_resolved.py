@@ -35,7 +35,7 @@ SCALED = [
 
 
 def resolved_env(*overrides):
-    return make_env(load_config("ms", "catheter", "atp", [*SCALED, *overrides]), Coordinator())
+    return make_env(load_config("ms", overrides=[*SCALED, *overrides]), Coordinator())
 
 
 def test_s2_in_the_s1_tail_breaks_the_wave():

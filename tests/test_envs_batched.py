@@ -46,7 +46,7 @@ SMALL = (
 
 def batched(replicas, seed=3, extra=()):
     torch_backend = ("env.model.backend=torch", f"env.replicas={replicas}")
-    cfg = load_config("ms", "catheter", "atp", [*SMALL, *torch_backend, *extra], seed=seed)
+    cfg = load_config("ms", overrides=[*SMALL, *torch_backend, *extra], seed=seed)
     return make_env(cfg, Coordinator())
 
 
@@ -178,7 +178,7 @@ def test_compiled_float32_replicas_follow_the_eager_float64_ones_and_not_their_b
     runs = {}
     for replicas, extra in ((8, ()), (8, compiled), (1, compiled)):
         options = [*grid, "env.mesh.cells=60", *extra, "env.model.backend=torch"]
-        cfg = load_config("ms", "catheter", "atp", [*options, f"env.replicas={replicas}"], seed=3)
+        cfg = load_config("ms", overrides=[*options, f"env.replicas={replicas}"], seed=3)
         env = make_env(cfg, Coordinator())
         assert env.simulator.dtype == (torch.float32 if extra else torch.float64)
         rows = [env.reset()["observation"]]
@@ -225,7 +225,7 @@ def test_replica_equals_the_petsc_task_seeded_as_its_member(scheme, rest, induct
     drawn delay, then a drawn rest), and with the catheter reading the gate w."""
     extra = (f"env.model.scheme={scheme}", f"env.reset.rest_time={rest}", *induction)
     env = batched(2, extra=extra)
-    reference = make_env(load_config("ms", "catheter", "atp", [*SMALL, *extra]), Coordinator())
+    reference = make_env(load_config("ms", overrides=[*SMALL, *extra]), Coordinator())
     actions = ([1, 0], [0, 1])
     start = env.reset()
     steps = [env.step(TensorDict({"action": torch.tensor(a)}, batch_size=[2])) for a in actions]
@@ -260,7 +260,7 @@ def test_policies_share_the_replicas_and_each_episode_is_its_own():
     rows, means = compare(batched(4, extra=task), policies, seeds, {"shocks": 1})
     assert len({row["length"] for row in rows}) > 1  # episodes end at different times
     coordinator = Coordinator()
-    alone = make_env(load_config("ms", "catheter", "atp", [*SMALL, *task]), coordinator)
+    alone = make_env(load_config("ms", overrides=[*SMALL, *task]), coordinator)
     with coordinator:
         expected = [
             {"policy": name, **run_episode(alone, policy, s, {"shocks": 1})}
@@ -353,7 +353,7 @@ def test_a_reset_that_names_no_replica_and_an_action_out_of_range():
     ],
 )
 def test_bad_settings_are_named(overrides, message):
-    cfg = load_config("ms", "catheter", "atp", [*SMALL, *overrides])
+    cfg = load_config("ms", overrides=[*SMALL, *overrides])
     with pytest.raises(ValueError, match=re.escape(message)):
         make_env(cfg, Coordinator())
 

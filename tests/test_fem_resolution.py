@@ -84,7 +84,7 @@ def build(capsys, *overrides_per_env):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
         for overrides in overrides_per_env:
-            make_env(load_config("ms", "catheter", "atp", overrides), Coordinator())
+            make_env(load_config("ms", overrides=overrides), Coordinator())
     return [w for w in caught if issubclass(w.category, ResolutionWarning)], capsys.readouterr()
 
 

@@ -176,7 +176,7 @@ def run(cfg) -> list[dict]:
     decisions = int(cfg.decisions)
     overrides = [*cfg.overrides, *FIXED_LENGTH, f"env.max_decisions={decisions}"]
     coordinator = Coordinator(comm)
-    env = make_env(load_config("ms", "catheter", "atp", overrides, int(cfg.seed)), coordinator)
+    env = make_env(load_config("ms", overrides=overrides, seed=int(cfg.seed)), coordinator)
     task = env.task
     policy = Schedule(range(0, decisions, int(cfg.shock_every)))
     actions = [int(d in policy.steps) for d in range(decisions)]

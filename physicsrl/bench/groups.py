@@ -104,7 +104,7 @@ def run(cfg) -> list[dict]:
 
 def _atp_row(cfg, world: MPI.Comm, P: int) -> dict | None:
     """The ATP row (on the learner; None elsewhere)."""
-    config = load_config("ms", "catheter", "atp", [*cfg.overrides, *FIXED_LENGTH], seed=cfg.seed)
+    config = load_config("ms", overrides=[*cfg.overrides, *FIXED_LENGTH], seed=cfg.seed)
     with environments(lambda c: make_env(config, c), P, seed=cfg.seed) as env:
         if env is None:
             return None

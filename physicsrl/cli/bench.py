@@ -87,7 +87,7 @@ def check(cfg, job, name: str) -> None:
         from physicsrl.checks import build, plain
         from physicsrl.envs import TASKS, load_config
 
-        groups = plain(load_config("ms", "catheter", "atp", list(cfg.overrides)))
+        groups = plain(load_config("ms", overrides=list(cfg.overrides)))
         task, settings = TASKS.lookup(groups["env"])
         env = build(task.Config, settings, "env")
         if name == "groups" and cfg.decisions > env.max_decisions:

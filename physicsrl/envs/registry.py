@@ -85,19 +85,22 @@ def shipped(group: str, option: str) -> str:
 
 def load_config(
     env: str = "heat",
-    observation: str = "quadrants",
-    reward: str = "heat_stop",
+    observation: str | None = None,
+    reward: str | None = None,
     overrides: tuple[str, ...] | list[str] = (),
     seed: int | None = None,
 ):
     """The config of ``make_env`` from the shipped YAML files (``physicsrl.conf``), without
-    Hydra: ``overrides`` are dotted ``key=value`` strings, e.g. ``"env.mesh.cells=20"``.
+    Hydra: the task ``env``, the ``observation`` and ``reward`` options (None: those the task's
+    YAML chooses, as on the command line: ``catheter`` and ``atp`` for ``ms``), and
+    ``overrides``, dotted ``key=value`` strings, e.g. ``"env.mesh.cells=20"``.
 
     For scripts, tests and examples; Hydra commands compose the same groups themselves.
     """
     from omegaconf import OmegaConf
 
-    groups = {"env": env, "observation": observation, "reward": reward}
+    groups = {"env": env, **chosen_options(env)}
+    groups |= {g: o for g, o in (("observation", observation), ("reward", reward)) if o}
     cfg = OmegaConf.create({g: shipped_option(g, n) for g, n in groups.items()})
     cfg.seed = seed
     changes = OmegaConf.from_dotlist(list(overrides))
@@ -105,6 +108,21 @@ def load_config(
     if unknown:
         raise ValueError(f"overrides: {unknown[0]!r} is not one of {', '.join(cfg)}")
     return OmegaConf.merge(cfg, changes)
+
+
+def chosen_options(env: str) -> dict[str, str]:
+    """The options of other groups that the shipped task ``env``'s defaults list chooses
+    (``override /observation@_global_.observation: catheter``), those of the task it extends
+    (``ms_resolved``: ``ms``) first."""
+    from omegaconf import OmegaConf
+
+    chosen: dict[str, str] = {}
+    for entry in OmegaConf.load(shipped("env", env)).get("defaults", []):
+        if isinstance(entry, str):
+            chosen |= {} if entry == "_self_" else chosen_options(entry)
+        else:
+            chosen |= {key.split("@")[0].split("/")[-1]: value for key, value in entry.items()}
+    return chosen
 
 
 def shipped_option(group: str, option: str):

@@ -10,7 +10,7 @@ from physicsrl.envs import load_config, make_env
 from physicsrl.envs.gym import GymnasiumView
 
 coordinator = Coordinator()
-env = make_env(load_config("heat", "quadrants", "heat_stop", ["env.mesh.cells=8"]), coordinator)
+env = make_env(load_config("heat", overrides=["env.mesh.cells=8"]), coordinator)
 view = GymnasiumView(env)
 with coordinator:
     if coordinator.is_leader():

@@ -37,11 +37,9 @@ def episodes(env, seeds):
 
 def run(comm):
     coordinator = Coordinator(comm)
-    heat = make_env(load_config("heat", "quadrants", "heat_stop", HEAT), coordinator)
-    atp = make_env(load_config("ms", "catheter", "atp", ATP), coordinator)
-    gate = make_env(
-        load_config("ms", "catheter", "atp", [*ATP, "observation.variable=w"]), coordinator
-    )
+    heat = make_env(load_config("heat", overrides=HEAT), coordinator)
+    atp = make_env(load_config("ms", overrides=ATP), coordinator)
+    gate = make_env(load_config("ms", overrides=[*ATP, "observation.variable=w"]), coordinator)
     with coordinator:
         if coordinator.is_leader():
             return {

@@ -19,9 +19,7 @@ def flags(td) -> dict:
 
 
 coordinator = Coordinator()
-env = make_env(
-    load_config("ms", "catheter", "atp", [*SMALL_ATP, "env.model.dt=0.1"], 0), coordinator
-)
+env = make_env(load_config("ms", overrides=[*SMALL_ATP, "env.model.dt=0.1"], seed=0), coordinator)
 with abort_on_error(), coordinator:
     if coordinator.is_leader():
         env.reset()

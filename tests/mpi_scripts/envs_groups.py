@@ -22,7 +22,7 @@ SEED, STEPS, EVAL_SEEDS = 7, 14, [100, 101, 102]
 
 
 def config():
-    return load_config("heat", "quadrants", "heat_stop", ["env.mesh.cells=12", "env.max_steps=4"])
+    return load_config("heat", overrides=["env.mesh.cells=12", "env.max_steps=4"])
 
 
 def policy(td):

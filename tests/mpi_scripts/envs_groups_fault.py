@@ -12,7 +12,7 @@ from physicsrl.envs import load_config, make_env
 from physicsrl.envs.layout import environments
 
 mode, ranks_per_env = sys.argv[1], int(sys.argv[2])
-cfg = load_config("heat", "quadrants", "heat_stop", ["env.mesh.cells=8"])
+cfg = load_config("heat", overrides=["env.mesh.cells=8"])
 with abort_on_error():
     with environments(lambda c: make_env(cfg, c), ranks_per_env, seed=0) as env:
         if env is not None:
