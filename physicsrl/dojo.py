@@ -205,6 +205,12 @@ class Dojo:
         config = self.config
         iterations = config.iterations if iterations is None else iterations
         check_seeds(config.seed, iterations, self.eval_seeds)
+        if self.counters.iteration >= iterations:  # a resume of a finished run
+            log.warning(
+                "nothing to train: iteration %d of %d is done (raise iterations to train on)",
+                self.counters.iteration,
+                iterations,
+            )
         self._open_logs()
         started, sent, phases = time.perf_counter(), self._broadcast_s(), self._phases()
         collector = self._collector = Collector(

@@ -249,6 +249,23 @@ def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
     assert [r["iteration"] for r in csv.DictReader((tmp_path / "eval.csv").open())] == ["3", "4"]
 
 
+def test_a_resume_of_a_finished_run_says_there_is_nothing_to_train(tmp_path, caplog):
+    from physicsrl import config as c
+    from physicsrl.checkpoint import Checkpoints
+
+    config = c.TrainConfig(
+        collector=c.CollectorConfig(frames_per_batch=8),
+        eval=c.Evaluation(every=0, seeds=c.held_out_seeds(2)),
+        logger=c.LoggerConfig(progress=False, tensorboard=False),
+    )
+    train_toy_chain(config, 2, log_dir=tmp_path)
+    assert "nothing to train" not in caplog.text
+    latest = Checkpoints(tmp_path / "checkpoints", keep=3).latest()
+    dojo = train_toy_chain(config, 2, log_dir=tmp_path, resume=latest)
+    assert "nothing to train: iteration 2 of 2 is done" in caplog.text
+    assert dojo.counters.iteration == 2 and [r["iteration"] for r in dojo.history] == [2]
+
+
 def test_a_resume_with_another_batch_size_samples_it(tmp_path, monkeypatch):
     """The replay buffer's state holds its batch size; a resume with ``buffer.batch_size``
     changed samples the new size, not the stored one."""
