@@ -188,7 +188,7 @@ class Dojo:
         )
         self.writer = None
         self._cost_writers: dict = {}  # the evaluations' cost axes (_open_logs)
-        self._stop_reason: str | None = None
+        self.stopped: str | None = None  # why train() stopped early (request_stop)
         self._saved_iteration = -1  # the iteration of the last checkpoint written or loaded
         self._checkpoint_failed = False
         self._pending_rng: dict | None = None
@@ -230,7 +230,7 @@ class Dojo:
         bar = self._progress_bar(iterations)
         batches = iter(collector)
         try:
-            while self.counters.iteration < iterations and self._stop_reason is None:
+            while self.counters.iteration < iterations and self.stopped is None:
                 # 1. collect a batch with the exploration policy (the simulation runs here)
                 started, sent, phases = time.perf_counter(), self._broadcast_s(), self._phases()
                 data = next(batches).exclude("collector")
@@ -266,15 +266,15 @@ class Dojo:
             if bar is not None:
                 bar.close()
         last = self.history[-1]["iteration"] if self.history else None
-        final = self._stop_reason is None and last != self.counters.iteration
+        final = self.stopped is None and last != self.counters.iteration
         if final:
             self.evaluate()  # the final greedy policy, kept in the last checkpoint too
         if self.checkpoints is not None and (
             final or self._saved_iteration != self.counters.iteration
         ):
             self.save_checkpoint()
-        if self._stop_reason is not None:
-            log.warning("stopped at iteration %d: %s", self.counters.iteration, self._stop_reason)
+        if self.stopped is not None:
+            log.warning("stopped at iteration %d: %s", self.counters.iteration, self.stopped)
         if (
             self.counters.frames
             and not self.counters.episodes
@@ -372,11 +372,7 @@ class Dojo:
 
     def request_stop(self, reason: str = "stop requested") -> None:
         """End :meth:`train` after the current iteration (with a checkpoint)."""
-        self._stop_reason = reason
-
-    @property
-    def stopped(self) -> str | None:
-        return self._stop_reason
+        self.stopped = reason
 
     def summary(self) -> dict:
         last = self.history[-1] if self.history else {}
@@ -388,7 +384,7 @@ class Dojo:
             "env_steps_per_s": self.counters.frames
             / max(self.counters.time_s.get("simulation", 0.0), 1e-9),
             "eval": last,
-            "stopped": self._stop_reason,
+            "stopped": self.stopped,
         }
 
     # checkpoints --------------------------------------------------------------------------
@@ -601,7 +597,7 @@ class Dojo:
         previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
 
         def handler(signum, frame):
-            if self._stop_reason is not None and signum == signal.SIGINT:
+            if self.stopped is not None and signum == signal.SIGINT:
                 raise KeyboardInterrupt
             self.request_stop(f"received {signal.Signals(signum).name}")
 

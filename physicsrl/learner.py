@@ -21,7 +21,7 @@ from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.members import Members
 from physicsrl.envs.task import ResetDiverged, Task
 from physicsrl.evaluation import compare
-from physicsrl.launch import sweeping
+from physicsrl.launch import refuse, sweeping
 from physicsrl.run_directory import RESUMED, find_run
 from physicsrl.tables import format_table, provenance, rounded
 
@@ -158,12 +158,10 @@ def check_environments(before: int, n_envs: int) -> None:
     """Exit with one line unless the checkpoint's run had ``n_envs`` environments: their
     episode generators are part of the exact resume."""
     if before != n_envs:
-        print(
-            f"error: the checkpoint's run had {before} environment(s), this job has {n_envs} "
-            "(mpi.ranks / mpi.ranks_per_env): resume with the same number",
-            file=sys.stderr,
+        refuse(
+            f"the checkpoint's run had {before} environment(s), this job has {n_envs} "
+            "(mpi.ranks / mpi.ranks_per_env): resume with the same number"
         )
-        raise SystemExit(2)
 
 
 TASK_KEYS = ("env.name", "env.module", "observation.name", "reward.name")

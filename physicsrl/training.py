@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import random
 import signal
-import sys
 
 import numpy as np
 from mpi4py import MPI
@@ -28,7 +27,7 @@ from mpi4py import MPI
 from physicsrl.config import TrainConfig, typed
 from physicsrl.envs.factory import builds_env, make_env_for_rank
 from physicsrl.envs.layout import environments
-from physicsrl.launch import output_dir
+from physicsrl.launch import output_dir, refuse
 
 
 def train(cfg) -> None:
@@ -59,9 +58,7 @@ def train(cfg) -> None:
             error = str(problem)
     resume, error = comm.bcast((resume, error), root=0)
     if error:
-        if leader:
-            print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2)
+        refuse(error)
     if not leader:  # the leader checkpoints and releases the followers on a signal
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
