@@ -1,5 +1,5 @@
 """Peak memory per cell of the Mitchell-Schaeffer simulator, beside the estimate by which
-``physicsrl-train`` refuses a mesh too large (:data:`physicsrl.cli.train.MESH_BYTES_PER_CELL`).
+``physicsrl-train`` refuses a mesh too large (:data:`physicsrl.config.MESH_BYTES_PER_CELL`).
 
 For each scheme and grid (cells x cells quadrilaterals of [-50, 50]^2, one rank), a fresh
 process builds the simulator and advances it 10 steps of dt = 0.03 (or the explicit scheme's
@@ -57,7 +57,7 @@ def main() -> None:
     if args.one:  # a child: one measurement, printed
         print(measure(int(args.one[0]), args.one[1]))
         return
-    from physicsrl.cli.train import MESH_BYTES_PER_CELL
+    from physicsrl.config import MESH_BYTES_PER_CELL
 
     lines = ["cells per side  scheme    peak bytes per cell  estimate  measured / estimate"]
     ratios = []

@@ -24,6 +24,7 @@ import collections
 import dataclasses
 import enum
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,6 +35,11 @@ SEEDS_PER_RUN = 1_000_000
 SEED_STRIDE = 1 << 40  # between the seeds of a batch's members
 # float32 parameters, held 5 times: the online and target networks, the gradient, Adam's moments
 BYTES_PER_PARAMETER = 4 * 5
+# a simulator's peak memory per cell of its mesh (DOLFINx/PETSc), rounded up from the
+# Mitchell-Schaeffer model's on one rank (benchmarks/ms_memory.py)
+MESH_BYTES_PER_CELL = 1000
+# the torch backend's memory per replica and dof: u, w and the step's temporaries (float64)
+STATE_BYTES_PER_DOF = 6 * 8
 
 
 def train_seed(seed: int, iteration: int) -> int:
@@ -439,6 +445,17 @@ def typed(cfg) -> Any:
 
     check_keys(cfg, OmegaConf.get_type(cfg))
     return OmegaConf.to_object(cfg)
+
+
+def train_config(config: TrainConfig | Mapping | None = None) -> TrainConfig:
+    """``config`` as a :class:`TrainConfig`: itself, the defaults (None), or a mapping of its
+    keys (nested dicts or a ``DictConfig``, e.g. ``{"optim": {"lr": 3e-4}}``) on the defaults,
+    checked as the command line's (an unknown key or a bad value raises, naming the key)."""
+    if isinstance(config, TrainConfig):
+        return config
+    from omegaconf import OmegaConf
+
+    return typed(OmegaConf.merge(OmegaConf.structured(TrainConfig), config or {}))
 
 
 def check_keys(cfg, schema: type, prefix: str = "") -> None:

@@ -45,7 +45,8 @@ from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, CheckpointsError, State
-from physicsrl.config import TrainConfig, check_seeds, train_seed
+from physicsrl.checks import integer
+from physicsrl.config import TrainConfig, check_seeds, train_config, train_seed
 from physicsrl.evaluation import run_episodes
 from physicsrl.tables import mean_metrics, write_csv
 
@@ -109,16 +110,16 @@ def charge_actions(data: TensorDictBase, costs: torch.Tensor) -> TensorDictBase:
 class Dojo:
     """DQN training pipeline: collect, store, learn, evaluate, log, checkpoint.
 
-    Every setting comes from ``config`` (:class:`~physicsrl.config.TrainConfig`, default: its
-    defaults), and every TorchRL object but the Q-network is built from it by
-    :mod:`physicsrl.builders`: double-DQN ``DQNLoss``, its target updater, Adam, the replay
-    buffer and the annealed ``EGreedyModule``. The sections used: ``collector`` (frames per
-    batch, reset at each batch), ``optim`` (updates per batch, ``learning_starts`` frames
-    before the first, when the Q-network's ``Normalizer`` is fitted to the stored data,
-    ``grad_clip``), ``loss`` (``n_steps``: :func:`n_step_transitions`; ``action_costs``: a
-    training-only penalty per action, :func:`charge_actions`, never in the returns logged or
-    evaluated), ``eval`` (every so many iterations, on one episode per held-out seed),
-    ``checkpoint``, ``logger`` and ``seed`` (batch ``i`` resets the env with
+    Every setting comes from ``config`` (:class:`~physicsrl.config.TrainConfig`, or a mapping of
+    its keys on its defaults: :func:`~physicsrl.config.train_config`), and every TorchRL object
+    but the Q-network is built from it by :mod:`physicsrl.builders`: double-DQN ``DQNLoss``, its
+    target updater, Adam, the replay buffer and the annealed ``EGreedyModule``. The sections
+    used: ``collector`` (frames per batch, reset at each batch), ``optim`` (updates per batch,
+    ``learning_starts`` frames before the first, when the Q-network's ``Normalizer`` is fitted
+    to the stored data, ``grad_clip``), ``loss`` (``n_steps``: :func:`n_step_transitions`;
+    ``action_costs``: a training-only penalty per action, :func:`charge_actions`, never in the
+    returns logged or evaluated), ``eval`` (every so many iterations, on one episode per
+    held-out seed), ``checkpoint``, ``logger`` and ``seed`` (batch ``i`` resets the env with
     :func:`~physicsrl.config.train_seed`).
 
     Parameters
@@ -129,7 +130,7 @@ class Dojo:
     env:
         A TorchRL env with a discrete action spec. Stepped only from the calling rank.
     config:
-        The training config.
+        The training config (default: :class:`~physicsrl.config.TrainConfig`'s defaults).
     log_dir:
         Run directory: TensorBoard events (``tensorboard/``: training scalars by iteration,
         and each evaluation metric against iterations, environment steps, training wall-clock
@@ -151,7 +152,7 @@ class Dojo:
         self,
         q_network: torch.nn.Module,
         env: EnvBase,
-        config: TrainConfig | None = None,
+        config: TrainConfig | Mapping | None = None,
         *,
         log_dir: str | Path | None = None,
         checkpoint_extra: Mapping | None = None,
@@ -160,7 +161,7 @@ class Dojo:
         environments: int = 1,
         cores: int = 1,
     ):
-        self.config = config = config or TrainConfig()
+        self.config = config = train_config(config)
         self.env = env
         self.q_network = q_network
         self.loss = builders.make_loss(self.q_network, env, config.loss)
@@ -203,7 +204,9 @@ class Dojo:
         with ``handle_signals``) or :meth:`request_stop`. Returns :meth:`summary`.
         """
         config = self.config
-        iterations = config.iterations if iterations is None else iterations
+        iterations = (
+            config.iterations if iterations is None else integer("iterations", iterations, 1)
+        )
         check_seeds(config.seed, iterations, self.eval_seeds)
         if self.counters.iteration >= iterations:  # a resume of a finished run
             log.warning(

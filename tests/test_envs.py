@@ -17,6 +17,7 @@ from physicsrl.fem.heat import transient_integral
 from physicsrl.tables import mean_metrics
 
 SMALL_HEAT = ["env.mesh.cells=16"]
+SHIPPED = Path(__file__).resolve().parents[1] / "conf"
 
 
 def heat_env(*overrides, seed=0):
@@ -179,6 +180,10 @@ def test_atp_reward_by_hand():
         (("ms", "catheter", "atp"), "env.decision_interval=0.01", "env.decision_interval"),
         (("ms", "catheter", "atp"), "env.cross_field.s1_time=1", "env.cross_field.s1_time"),
         (("heat", "quadrants", "heat_stop"), "envs.mesh.cells=8", "'envs' is not one of"),
+        (("heat", "quadrants", "heat_stop"), "seed=-3", "seed must be an integer >= 0, got -3"),
+        # refused before the mesh is made (else: std::bad_alloc, or swapping for minutes)
+        (("heat", "quadrants", "heat_stop"), "env.mesh.cells=100000", "cells=100000 would need"),
+        (("ms", "catheter", "atp"), "max_memory_gb=0.001", "more than max_memory_gb=0.001"),
     ],
 )
 def test_bad_config_values_raise_naming_the_key(groups, override, message):
@@ -186,7 +191,13 @@ def test_bad_config_values_raise_naming_the_key(groups, override, message):
         make_env(load_config(*groups, [override]), Coordinator())
 
 
-SHIPPED = Path(__file__).resolve().parents[1] / "conf"
+@pytest.mark.parametrize("group", ["env", "observation", "reward"])
+def test_load_config_names_a_groups_options_when_one_does_not_exist(group):
+    options = ", ".join(sorted(p.stem for p in (SHIPPED / group).glob("*.yaml")))
+    with pytest.raises(
+        ValueError, match=rf"^{group}=nosuch: no such option \(choose one of {options}\)$"
+    ):
+        load_config(**{"env": "heat", group: "nosuch"})
 
 
 @pytest.mark.parametrize("option", sorted(p.stem for p in (SHIPPED / "env").glob("*.yaml")))

@@ -191,6 +191,40 @@ def test_a_batch_is_a_whole_number_of_steps_of_every_environment():
     assert CollectorConfig(frames_per_env=5).frames(3) == 15
 
 
+def test_the_dojo_takes_a_mapping_of_the_configs_keys_checked_as_the_command_lines():
+    """``Dojo(q, env, {"optim": {"lr": 3e-4}, ...})``: a dict or a ``DictConfig`` of the
+    config's keys is the :class:`~physicsrl.config.TrainConfig` of those on the defaults, with
+    the command line's checks: an unknown key, a wrong type or a bad value raises naming the
+    key, before anything is built; so does a number of iterations to train that is not one."""
+    sys.path.insert(0, str(TOY.parent))
+    from omegaconf import OmegaConf
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl import config as c
+    from physicsrl.builders import make_q_network
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+
+    env = ToyChainEnv(Coordinator(), length=3)
+    q_network = make_q_network(env)
+    settings = {"iterations": 2, "optim": {"lr": 3e-4}, "buffer": {"storage": "memmap"}}
+    expected = c.TrainConfig(
+        iterations=2, optim=c.OptimConfig(lr=3e-4), buffer=c.BufferConfig(storage=c.Storage.memmap)
+    )
+    for config in (settings, OmegaConf.create(settings)):
+        assert Dojo(q_network, env, config).config == expected
+    for bad, named in [
+        ({"optim": {"nosuch": 1}}, "full_key: optim.nosuch"),
+        ({"agent": {"lr": "fast"}}, "full_key: agent.lr"),
+        ({"iterations": 0}, "iterations must be an integer >= 1, got 0"),
+        ({"eval": {"seeds": [0]}}, r"eval.seeds \[0\] are also training seeds"),
+    ]:
+        with pytest.raises((KeyError, ValueError), match=named):
+            Dojo(q_network, env, bad)
+    with pytest.raises(ValueError, match="iterations must be an integer >= 1, got 2.5"):
+        Dojo(q_network, env).train(2.5)
+
+
 def train_toy_chain(
     config, iterations: int, log_dir: Path | None = None, resume: Path | None = None
 ):

@@ -175,6 +175,7 @@ def run(cfg) -> list[dict]:
     comm = MPI.COMM_WORLD
     decisions = int(cfg.decisions)
     overrides = [*cfg.overrides, *FIXED_LENGTH, f"env.max_decisions={decisions}"]
+    overrides.append(f"max_memory_gb={cfg.max_memory_gb}")
     coordinator = Coordinator(comm)
     env = make_env(load_config("ms", overrides=overrides, seed=int(cfg.seed)), coordinator)
     task = env.task

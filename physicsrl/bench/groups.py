@@ -104,7 +104,8 @@ def run(cfg) -> list[dict]:
 
 def _atp_row(cfg, world: MPI.Comm, P: int) -> dict | None:
     """The ATP row (on the learner; None elsewhere)."""
-    config = load_config("ms", overrides=[*cfg.overrides, *FIXED_LENGTH], seed=cfg.seed)
+    overrides = [*cfg.overrides, *FIXED_LENGTH, f"max_memory_gb={cfg.max_memory_gb}"]
+    config = load_config("ms", overrides=overrides, seed=cfg.seed)
     with environments(lambda c: make_env(config, c), P, seed=cfg.seed) as env:
         if env is None:
             return None

@@ -64,8 +64,7 @@ def check(cfg, job, name: str) -> None:
     simulators it builds, within ``max_memory_gb``, as ``physicsrl-train`` estimates it (ms:
     each simulator it keeps, the report's LU baseline counted as one more; env and groups: the
     task's); nothing is built."""
-    from physicsrl.cli.train import MESH_BYTES_PER_CELL, simulator_needs
-    from physicsrl.config import check_needs
+    from physicsrl.config import MESH_BYTES_PER_CELL, check_needs
 
     check_settings(cfg, SETTINGS[name])
     needs = {}
@@ -86,6 +85,7 @@ def check(cfg, job, name: str) -> None:
     if "overrides" in cfg:
         from physicsrl.checks import build, plain
         from physicsrl.envs import TASKS, load_config
+        from physicsrl.envs.factory import simulator_needs
 
         groups = plain(load_config("ms", overrides=list(cfg.overrides)))
         task, settings = TASKS.lookup(groups["env"])
@@ -97,7 +97,8 @@ def check(cfg, job, name: str) -> None:
             )
         grouped = name == "groups"
         ranks = cfg.mpi.ranks_per_env if grouped else job.ranks
-        needs = simulator_needs(env, "mpi.ranks_per_env" if grouped else "mpi.ranks", ranks)
+        key = "mpi.ranks_per_env" if grouped else "mpi.ranks"
+        needs = simulator_needs(env, ranks, f"{key}={ranks}")
     if needs:  # benchmarks that build a simulator
         check_needs(needs, cfg.max_memory_gb)
 

@@ -30,13 +30,6 @@ def check_task(cfg, job) -> None:
     check_run(cfg)
 
 
-STATE_BYTES_PER_DOF = 6 * 8
-"""The torch backend's memory per replica and dof: u, w and the step's temporaries (float64)."""
-MESH_BYTES_PER_CELL = 1000
-"""A simulator's peak memory per cell of its mesh (DOLFINx/PETSc), rounded up from the
-Mitchell-Schaeffer model's on one rank (``benchmarks/ms_memory.py``)."""
-
-
 def check_run(cfg) -> None:
     """The task groups as :func:`physicsrl.envs.make_env` will read them, the reward's events
     among the task's, the observation inside the task's domain, the network's inputs among the
@@ -51,7 +44,7 @@ def check_run(cfg) -> None:
         check_memory(config, {}, n_actions=2)
         return
     from physicsrl.checks import plain
-    from physicsrl.envs.factory import parts
+    from physicsrl.envs.factory import parts, simulator_needs
     from physicsrl.envs.task import SquareMesh
 
     observation, reward, task, task_config = parts(plain(cfg))
@@ -75,32 +68,9 @@ def check_run(cfg) -> None:
             f"agent.network.inputs: {unknown[0]!r} is not an observation key of the "
             f"{task.name} task (its keys: {', '.join(inputs)})"
         )
-    simulator = simulator_needs(task_config, "mpi.ranks_per_env", config.mpi.ranks_per_env)
+    ranks = config.mpi.ranks_per_env
+    simulator = simulator_needs(task_config, ranks, f"mpi.ranks_per_env={ranks}")
     check_memory(config, inputs, task.n_actions, simulator)
-
-
-def simulator_needs(task_config, ranks_key: str, ranks: int) -> dict[str, tuple[float, str]]:
-    """The memory per rank of the simulator of a task config on a square mesh, its cells
-    shared by ``ranks`` ranks (the setting ``ranks_key``), and of its torch replicas (which run
-    on one rank each): setting -> (bytes, how), for :func:`~physicsrl.config.check_needs`."""
-    from physicsrl.envs.task import SquareMesh
-
-    mesh = getattr(task_config, "mesh", None)
-    if not isinstance(mesh, SquareMesh):
-        return {}
-    needs = {
-        f"env.mesh.cells={mesh.cells}": (
-            mesh.cells**2 * MESH_BYTES_PER_CELL / ranks,
-            f"{MESH_BYTES_PER_CELL} bytes per cell, over {ranks_key}={ranks}, per rank",
-        )
-    }
-    if getattr(getattr(task_config, "model", None), "backend", None) == "torch":
-        replicas = task_config.replicas
-        needs[f"env.replicas={replicas}"] = (
-            replicas * (mesh.cells + 1) ** 2 * STATE_BYTES_PER_DOF,
-            f"{STATE_BYTES_PER_DOF} bytes per replica and dof",
-        )
-    return needs
 
 
 def env_inputs(task, observation) -> dict[str, tuple[int, int]]:

@@ -10,7 +10,9 @@
 
 Call it on every rank, in the same order relative to other coordinated objects; then only the
 leader calls ``reset``/``step``, inside ``with coordinator:``. Bad settings raise ValueError
-naming the key (``env.dt must be ...``). With ``env.model.backend=torch`` (the ATP task) the env
+naming the key (``env.dt must be ...``), and so does a simulator whose estimated memory per rank
+(:func:`simulator_needs`) exceeds ``cfg.max_memory_gb`` (default: ``physicsrl-train``'s), before
+its mesh is made. With ``env.model.backend=torch`` (the ATP task) the env
 is :class:`~physicsrl.envs.batched.BatchedATPEnv`: ``env.replicas`` copies of the task on this
 rank alone (a group of one rank).
 
@@ -25,11 +27,17 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from physicsrl.checks import build, plain
+from physicsrl.checks import build, integer, plain
+from physicsrl.config import (
+    MESH_BYTES_PER_CELL,
+    STATE_BYTES_PER_DOF,
+    check_needs,
+    train_default,
+)
 from physicsrl.coordinated import Coordinator
 from physicsrl.envs.observations import OBSERVATIONS
 from physicsrl.envs.rewards import REWARDS
-from physicsrl.envs.task import TASKS, Task
+from physicsrl.envs.task import TASKS, SquareMesh, Task
 from physicsrl.launch import check_backend
 
 if TYPE_CHECKING:
@@ -40,6 +48,7 @@ def make_env(cfg: Mapping | Any, coordinator: Coordinator) -> EnvBase:
     """Build task (on this rank), observation and reward from ``cfg``; see the module docstring."""
     cfg = plain(cfg)
     observation, reward, task_class, config = parts(cfg)
+    check_memory(cfg, config, coordinator)
     if getattr(getattr(config, "model", None), "backend", None) == "torch":
         from physicsrl.envs.batched import BatchedATPEnv  # torch's time loop
 
@@ -53,7 +62,9 @@ def make_env(cfg: Mapping | Any, coordinator: Coordinator) -> EnvBase:
 def make_task(cfg: Mapping | Any, coordinator: Coordinator) -> Task:
     """The task of :func:`make_env`'s env alone (its simulator side; no torch): what a rank that
     only serves ``coordinator``'s leader needs. Collective as :func:`make_env` is."""
-    observation, _, task_class, config = parts(plain(cfg))
+    cfg = plain(cfg)
+    observation, _, task_class, config = parts(cfg)
+    check_memory(cfg, config, coordinator)
     if getattr(getattr(config, "model", None), "backend", None) == "torch":
         check_backend("torch", coordinator.comm.size)  # its env has no followers: refused
     return task_class(coordinator, config, observation)
@@ -79,12 +90,15 @@ def builds_env(cfg: Mapping | Any, leader: bool) -> bool:
 
 def parts(cfg: dict) -> tuple:
     """(observation, reward, task class, task config) of a plain ``cfg``; ValueError naming a
-    missing group, a bad setting or an observation of a variable the task does not simulate."""
+    missing group, a bad setting (the seed too) or an observation of a variable the task does
+    not simulate."""
     for group in ("env", "observation", "reward"):
         if group not in cfg:
             raise ValueError(
                 f"{group} is missing from the config (groups: env, observation, reward)"
             )
+    if cfg.get("seed") is not None:
+        integer("seed", cfg["seed"], 0)
     observation = build(*OBSERVATIONS.lookup(cfg["observation"]), "observation")
     reward = build(*REWARDS.lookup(cfg["reward"]), "reward")
     task_class, settings = TASKS.lookup(cfg["env"])
@@ -94,3 +108,35 @@ def parts(cfg: dict) -> tuple:
             f"task: it simulates {', '.join(task_class.variables)}"
         )
     return observation, reward, task_class, build(task_class.Config, settings, "env")
+
+
+def check_memory(cfg: dict, task_config, coordinator: Coordinator) -> None:
+    """ValueError naming the setting (``env.mesh.cells``, ``env.replicas``) whose simulator
+    would need more than ``cfg["max_memory_gb"]`` (default: ``physicsrl-train``'s) per rank of
+    ``coordinator``, before anything is built."""
+    ranks = coordinator.comm.size
+    needs = simulator_needs(task_config, ranks, f"its coordinator's {ranks} rank(s)")
+    check_needs(needs, cfg.get("max_memory_gb", train_default("max_memory_gb")))
+
+
+def simulator_needs(task_config, ranks: int, over: str) -> dict[str, tuple[float, str]]:
+    """The memory per rank of the simulator of a task config on a square mesh, its cells
+    shared by ``ranks`` ranks (``over``: the setting or communicator that says so), and of its
+    torch replicas (which run on one rank each): setting -> (bytes, how), for
+    :func:`~physicsrl.config.check_needs`."""
+    mesh = getattr(task_config, "mesh", None)
+    if not isinstance(mesh, SquareMesh):
+        return {}
+    needs = {
+        f"env.mesh.cells={mesh.cells}": (
+            mesh.cells**2 * MESH_BYTES_PER_CELL / ranks,
+            f"{MESH_BYTES_PER_CELL} bytes per cell, over {over}, per rank",
+        )
+    }
+    if getattr(getattr(task_config, "model", None), "backend", None) == "torch":
+        replicas = task_config.replicas
+        needs[f"env.replicas={replicas}"] = (
+            replicas * (mesh.cells + 1) ** 2 * STATE_BYTES_PER_DOF,
+            f"{STATE_BYTES_PER_DOF} bytes per replica and dof",
+        )
+    return needs

@@ -69,7 +69,8 @@ def import_module_of(group: str, settings: Mapping) -> None:
 def shipped(group: str, option: str) -> str:
     """The path of the shipped YAML ``conf/<group>/<option>.yaml``: in the package
     ``physicsrl.conf`` when installed, the repository's ``conf/`` in a checkout (where a stray
-    ``physicsrl/conf`` folder may shadow the editable mapping); FileNotFoundError if absent."""
+    ``physicsrl/conf`` folder may shadow the editable mapping); ValueError naming the group's
+    options if absent."""
     from importlib.resources import files
     from pathlib import Path
 
@@ -78,7 +79,9 @@ def shipped(group: str, option: str) -> str:
         if (root / "env" / "heat.yaml").is_file():
             path = root / group / f"{option}.yaml"
             if not path.is_file():
-                raise FileNotFoundError(f"no config {group}/{option}.yaml in {root}")
+                yamls = (p.name for p in (root / group).iterdir() if p.name.endswith(".yaml"))
+                options = ", ".join(sorted(name.removesuffix(".yaml") for name in yamls))
+                raise ValueError(f"{group}={option}: no such option (choose one of {options})")
             return str(path)
     raise FileNotFoundError("the physicsrl configs (conf/env/heat.yaml) are not installed")
 
@@ -92,17 +95,20 @@ def load_config(
 ):
     """The config of ``make_env`` from the shipped YAML files (``physicsrl.conf``), without
     Hydra: the task ``env``, the ``observation`` and ``reward`` options (None: those the task's
-    YAML chooses, as on the command line: ``catheter`` and ``atp`` for ``ms``), and
+    YAML chooses, as on the command line: ``catheter`` and ``atp`` for ``ms``), the seed and
+    ``physicsrl-train``'s cap on a simulator's memory per rank (``max_memory_gb``), and
     ``overrides``, dotted ``key=value`` strings, e.g. ``"env.mesh.cells=20"``.
 
     For scripts, tests and examples; Hydra commands compose the same groups themselves.
     """
     from omegaconf import OmegaConf
 
+    from physicsrl.config import train_default
+
     groups = {"env": env, **chosen_options(env)}
     groups |= {g: o for g, o in (("observation", observation), ("reward", reward)) if o}
     cfg = OmegaConf.create({g: shipped_option(g, n) for g, n in groups.items()})
-    cfg.seed = seed
+    cfg.seed, cfg.max_memory_gb = seed, train_default("max_memory_gb")
     changes = OmegaConf.from_dotlist(list(overrides))
     unknown = sorted(set(changes) - set(cfg))
     if unknown:
