@@ -122,6 +122,16 @@ class TargetKind(enum.Enum):
     hard = "hard"  # HardUpdate: copy every `period` updates
 
 
+def member(name: str, kind: type[enum.Enum], value) -> enum.Enum:
+    """``value`` (a member of the Enum ``kind`` or a member's value, as a Python caller may
+    write it) as the member, else ValueError naming ``name``."""
+    try:
+        return kind(value)
+    except ValueError:
+        options = ", ".join(m.value for m in kind)
+        raise ValueError(f"{name} must be one of {options}, got {value!r}") from None
+
+
 def fraction(name: str, value, open_low: bool = False) -> float:
     """``value`` in [0, 1] ((0, 1] if ``open_low``), else ValueError naming ``name``."""
     return number(name, value, low=0.0, high=1.0, open_low=open_low)
@@ -137,6 +147,7 @@ class Network:
     normalize: bool = True  # fit (x - mean) / std on the first collected data
 
     def __post_init__(self):
+        self.activation = member("agent.network.activation", Activation, self.activation)
         if not self.inputs:
             raise ValueError("agent.network.inputs must name at least one env key")
         for i, width in enumerate(self.hidden):
@@ -214,6 +225,7 @@ class BufferConfig:
     batch_size: int = 64
 
     def __post_init__(self):
+        self.storage = member("buffer.storage", Storage, self.storage)
         integer("buffer.size", self.size, 1)
         integer("buffer.batch_size", self.batch_size, 1)
 
@@ -225,6 +237,7 @@ class TargetConfig:
     period: int = 100
 
     def __post_init__(self):
+        self.kind = member("loss.target.kind", TargetKind, self.kind)
         fraction("loss.target.tau", self.tau, open_low=True)
         integer("loss.target.period", self.period, 1)
 
@@ -241,6 +254,7 @@ class LossConfig:
     target: TargetConfig = field(default_factory=TargetConfig)
 
     def __post_init__(self):
+        self.loss_function = member("loss.loss_function", LossFunction, self.loss_function)
         fraction("loss.gamma", self.gamma, open_low=True)
         integer("loss.n_steps", self.n_steps, 1)
         for i, cost in enumerate(self.action_costs):

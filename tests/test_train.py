@@ -225,6 +225,24 @@ def test_the_dojo_takes_a_mapping_of_the_configs_keys_checked_as_the_command_lin
         Dojo(q_network, env).train(2.5)
 
 
+def test_a_python_caller_may_give_an_enum_setting_by_its_value():
+    """``BufferConfig(storage="tensor")`` is the member ``Storage.tensor``, as the YAML's value
+    is (the string used to pass, and the factories' ``is`` tests then built the other kind:
+    a memory-mapped buffer); a value that is no member's raises naming the key."""
+    from torchrl.data import LazyTensorStorage
+
+    from physicsrl import config as c
+    from physicsrl.builders import make_buffer
+
+    assert make_buffer(c.BufferConfig(storage="tensor"))._storage.__class__ is LazyTensorStorage
+    assert c.TargetConfig(kind="soft").kind is c.TargetKind.soft
+    assert c.LossConfig(loss_function="l2").loss_function is c.LossFunction.l2
+    assert c.Network(activation=c.Activation.tanh).activation is c.Activation.tanh
+    message = "agent.network.activation must be one of relu, tanh, elu, gelu, got 'sigmoid'"
+    with pytest.raises(ValueError, match=message):
+        c.Network(activation="sigmoid")
+
+
 def train_toy_chain(
     config, iterations: int, log_dir: Path | None = None, resume: Path | None = None
 ):
