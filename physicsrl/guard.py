@@ -18,7 +18,8 @@ non-zero). A marked end exits with the job's own status, silently.
 
 Every ``physicsrl-*`` command guards its ranks under a launcher (``mpi.ranks=N`` launches
 included); a script is guarded with ``mpiexec -n 4 python -m physicsrl.guard script.py [args]``
-(or ``-m module [args]``). The job stays in the rank's process group, where MPICH's
+(or ``-m module [args]``), and an exception in its own code then ends every rank with the
+traceback once (:func:`run`). The job stays in the rank's process group, where MPICH's
 ``mpiexec`` sends its signals, so SIGINT and SIGTERM reach it once, directly; the guard ignores
 them and ends with the job (a launcher that signals only the process it started would not reach
 the job: ``PHYSICSRL_GUARD=0`` there). The job is killed if its guard dies (the launcher's
@@ -149,14 +150,34 @@ def run(arguments: list[str]) -> NoReturn:
     if arguments[0] == "-m" and not _module_exists(arguments[1]):
         refuse(f"no module {arguments[1]}")
     guard()
-    if arguments[0] == "-m":
-        sys.argv = arguments[1:]
-        runpy.run_module(arguments[1], run_name="__main__", alter_sys=True)
-    else:
-        sys.argv = arguments
-        sys.path.insert(0, os.path.dirname(os.path.abspath(arguments[0])))
-        runpy.run_path(arguments[0], run_name="__main__")
+    try:
+        if arguments[0] == "-m":
+            sys.argv = arguments[1:]
+            runpy.run_module(arguments[1], run_name="__main__", alter_sys=True)
+        else:
+            sys.argv = arguments
+            sys.path.insert(0, os.path.dirname(os.path.abspath(arguments[0])))
+            runpy.run_path(arguments[0], run_name="__main__")
+    except Exception:
+        _end_every_rank()
+        raise
     raise SystemExit(0)
+
+
+def _end_every_rank() -> None:
+    """In the handling of an exception from the script's own code (outside the parallel calls,
+    which end every rank themselves): once MPI has started on several ranks, end every rank
+    as :class:`~physicsrl.coordinated.abort_on_error` does, with the traceback printed once
+    when every rank fails alike and without the others waiting when one fails alone."""
+    if "mpi4py.MPI" not in sys.modules:
+        return
+    from mpi4py import MPI
+
+    from physicsrl.coordinated import abort_on_error
+
+    if MPI.Is_initialized() and not MPI.Is_finalized():
+        with abort_on_error(MPI.COMM_WORLD):
+            raise
 
 
 def _module_exists(name: str) -> bool:

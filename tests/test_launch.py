@@ -354,6 +354,20 @@ def test_a_guarded_rank_that_vanishes_is_named_and_fails_the_job(mpi, ranks, sta
     assert "finished" not in result.stderr and "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("where", ["everywhere", "last"])
+def test_a_guarded_scripts_own_exception_ends_every_rank_with_one_traceback(mpi, where):
+    """An exception in a guarded script's own code, outside any ``with coordinator`` block: a
+    bad setting that every rank reads alike, or the last rank failing while the others wait in
+    a collective. Every rank ends with status 1 and the traceback is printed once (it was
+    printed by every rank), by the leader when it fails too."""
+    script = ["-m", "physicsrl.guard", "tests/mpi_scripts/coord_exit.py", f"raise-{where}"]
+    result = mpi(3, *script, timeout=30, check=False)
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.count("Traceback") == 1, result.stderr
+    rank = 0 if where == "everywhere" else 2
+    assert f"ValueError: a bad setting, read on rank {rank}\n" in result.stderr, result.stderr
+
+
 def test_the_guard_runs_a_module_and_refuses_a_missing_script_in_one_line(mpi):
     guarded = ["-m", "physicsrl.guard", "-m", "tests.mpi_scripts.coord_exit", "exit-3"]
     result = mpi(2, *guarded, timeout=30, check=False)

@@ -8,7 +8,8 @@ followers only (a hang that the watchdog ends); ``watched``: ordinary calls unde
 ``ctrl-c-idle``, ``ctrl-c-call`` and ``ctrl-c-plain``: wait for a Ctrl-C (the test sends SIGINT),
 the leader in its own code and the followers idle, every rank inside a parallel call, or every
 rank in its own code under ``abort_on_error``, after each rank has said "ready" and its pid on
-stderr.
+stderr; ``raise-everywhere`` and ``raise-last``: every rank, or the last one while the others
+wait in a barrier, raises in the script's own code before any coordinator.
 """
 
 import os
@@ -50,6 +51,11 @@ def ready(seconds):
 if how == "ctrl-c-plain":
     with abort_on_error():
         ready(60)
+
+if how.startswith("raise-"):  # the script's own code, outside a with block
+    if how == "raise-everywhere" or comm.rank == comm.size - 1:
+        raise ValueError(f"a bad setting, read on rank {comm.rank}")
+    comm.Barrier()  # the others wait for the last rank here
 
 coordinator = Coordinator()
 job = Job(coordinator)
