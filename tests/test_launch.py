@@ -6,6 +6,7 @@ import shlex
 import subprocess
 import sys
 import sysconfig
+import tomllib
 from functools import partial
 from pathlib import Path
 
@@ -257,7 +258,8 @@ def test_configs_are_found_from_a_built_wheel(tmp_path):
     """Build the wheel, install it alone into a fresh venv, run the console script elsewhere.
 
     The fresh venv borrows the heavy dependencies (torch, DOLFINx, MPI) from the test's
-    environment through a .pth file; physicsrl itself comes only from the wheel.
+    environment through a .pth file; physicsrl itself comes only from the wheel, and its
+    ``__version__`` is pyproject's.
     """
     subprocess.run(
         [
@@ -308,11 +310,18 @@ def test_configs_are_found_from_a_built_wheel(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "calls: 200000" in result.stdout
     where = run(
-        [str(fresh / "bin" / "python"), "-c", "import physicsrl; print(physicsrl.__file__)"],
+        [
+            str(fresh / "bin" / "python"),
+            "-c",
+            "import physicsrl; print(physicsrl.__file__, physicsrl.__version__)",
+        ],
         elsewhere,
         env=env,
     )
-    assert where.stdout.startswith(str(site))
+    path, version = where.stdout.split()
+    assert path.startswith(str(site))
+    with open(ROOT / "pyproject.toml", "rb") as pyproject:
+        assert version == tomllib.load(pyproject)["project"]["version"]
 
 
 @pytest.mark.parametrize("status", [3])
