@@ -472,6 +472,25 @@ def train_config(config: TrainConfig | Mapping | None = None) -> TrainConfig:
     return typed(OmegaConf.merge(OmegaConf.structured(TrainConfig), config or {}))
 
 
+def parse_overrides(overrides) -> Any:
+    """Dotted ``key=value`` strings (a list; e.g. ``["env.dt=0.02"]``) as one ``DictConfig``
+    (its values parsed as YAML); ValueError naming the first that is not one."""
+    from omegaconf import OmegaConf
+
+    if isinstance(overrides, str):
+        raise ValueError(f"overrides must be a list of key=value strings, got {overrides!r}")
+    changes = []
+    for override in overrides:
+        key, equals, _ = str(override).partition("=")
+        if not equals or not all(part.isidentifier() for part in key.split(".")):
+            raise ValueError(f"overrides: {override!r} is not key=value with a dotted key")
+        try:
+            changes.append(OmegaConf.from_dotlist([str(override)]))
+        except Exception as error:  # noqa: BLE001 - YAML's parser errors
+            raise ValueError(f"overrides: cannot parse {override!r}") from error
+    return OmegaConf.merge(OmegaConf.create(), *changes)
+
+
 def check_keys(cfg, schema: type, prefix: str = "") -> None:
     """ValueError naming the first key of ``cfg`` that the dataclass ``schema`` lacks."""
     fields = {f.name for f in dataclasses.fields(schema)}

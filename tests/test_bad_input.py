@@ -180,6 +180,7 @@ ROWS = [
     ("bench_groups", ["noop_steps=-1"], "noop_steps=-1: must be an integer >= 1"),
     ("bench_groups", ['overrides=["env.mesh.cells=-1"]'], "env.mesh.cells must be an integer"),
     ("bench_env", ['overrides=["env.nosuch=1"]'], "env.nosuch is not a setting of env"),
+    ("bench_env", ['overrides=["env.dt"]'], "overrides: 'env.dt' is not key=value"),
     # memory (physicsrl-train's estimates, max_memory_gb)
     ("bench_ms", ["grid.n=100000"], "grid.n=100000 would need about 3e+04 GB (3 simulator(s)"),
     ("bench_ms", ["grid.n=2000", "max_memory_gb=1"], "more than max_memory_gb=1"),

@@ -1,5 +1,6 @@
 """The heat task, the factory and its configs, rewards (issue 4)."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -189,6 +190,22 @@ def test_atp_reward_by_hand():
 def test_bad_config_values_raise_naming_the_key(groups, override, message):
     with pytest.raises(ValueError, match=message.replace(".", r"\.")):
         make_env(load_config(*groups, [override]), Coordinator())
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        ("env.dt=0.02", "overrides must be a list of key=value strings, got 'env.dt=0.02'"),
+        (["env.dt"], "overrides: 'env.dt' is not key=value with a dotted key"),
+        (["env..dt=1"], "overrides: 'env..dt=1' is not key=value with a dotted key"),
+        (["env.dt=[1"], "overrides: cannot parse 'env.dt=[1'"),
+    ],
+)
+def test_load_config_refuses_an_override_that_is_not_key_value(overrides, message):
+    """Each was taken: a string as its characters, ``env.dt`` as ``env.dt=None``, ``env..dt``
+    as a key named '', or the YAML parser's error of several lines."""
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        load_config("heat", overrides=overrides)
 
 
 @pytest.mark.parametrize("group", ["env", "observation", "reward"])

@@ -41,16 +41,11 @@ def run_config(stored: dict, overrides: list[str]):
     from omegaconf import OmegaConf
 
     from physicsrl.cli.command import one_line
-    from physicsrl.config import TrainConfig, typed
+    from physicsrl.config import TrainConfig, parse_overrides, typed
 
-    changes = []
-    for override in overrides:
-        try:
-            changes.append(OmegaConf.from_dotlist([override]))
-        except Exception as error:  # noqa: BLE001 - YAML's parser errors
-            raise ValueError(f"overrides: cannot parse {override!r}") from error
+    changes = parse_overrides(overrides)
     try:
-        merged = OmegaConf.merge(OmegaConf.structured(TrainConfig), stored, *changes)
+        merged = OmegaConf.merge(OmegaConf.structured(TrainConfig), stored, changes)
         typed(merged)
     except Exception as error:  # noqa: BLE001 - OmegaConf's errors name the key
         raise ValueError(f"overrides: {one_line(error)}") from error

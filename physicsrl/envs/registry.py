@@ -103,13 +103,13 @@ def load_config(
     """
     from omegaconf import OmegaConf
 
-    from physicsrl.config import train_default
+    from physicsrl.config import parse_overrides, train_default
 
     groups = {"env": env, **chosen_options(env)}
     groups |= {g: o for g, o in (("observation", observation), ("reward", reward)) if o}
     cfg = OmegaConf.create({g: shipped_option(g, n) for g, n in groups.items()})
     cfg.seed, cfg.max_memory_gb = seed, train_default("max_memory_gb")
-    changes = OmegaConf.from_dotlist(list(overrides))
+    changes = parse_overrides(overrides)
     unknown = sorted(set(changes) - set(cfg))
     if unknown:
         raise ValueError(f"overrides: {unknown[0]!r} is not one of {', '.join(cfg)}")
