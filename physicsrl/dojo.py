@@ -450,7 +450,11 @@ class Dojo:
         return path
 
     def load_checkpoint(self, path: str | Path) -> dict:
-        """Restore the checkpoint ``path``; return its ``extra``."""
+        """Restore the checkpoint ``path``, or a run directory's newest readable one (as
+        ``resume=<run dir>`` does; :class:`~physicsrl.checkpoint.CheckpointsError` if it has
+        none); return its ``extra``."""
+        if Path(path).is_dir():
+            path = Checkpoints(Path(path) / "checkpoints", 1).newest_readable()
         extra: dict = {}
         self.checkpoint(extra).load(path, map_location="cpu")
         self.history[:] = [self._in_order(row) for row in self.history]

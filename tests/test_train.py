@@ -268,11 +268,12 @@ def train_toy_chain(
 def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
     """A run whose last iteration is checkpointed in the loop (4, every 2) but not evaluated
     there (every 3): the final evaluation's row is in the last checkpoint as well as in
-    ``eval.csv``, so a resumed run keeps it, its columns in the same order (a JSON round trip
-    sorts them); a resume with another learning rate, discount or final epsilon runs with
-    them, not with the values that the loaded state holds."""
+    ``eval.csv``, so a resumed run (loaded from the run directory) keeps it, its columns in
+    the same order (a JSON round trip sorts them); a resume with another learning rate,
+    discount or final epsilon runs with them, not with the values that the loaded state
+    holds."""
     from physicsrl import config as c
-    from physicsrl.checkpoint import Checkpoints, read
+    from physicsrl.checkpoint import Checkpoints, CheckpointsError, read
     from physicsrl.dojo import Dojo
 
     config = c.TrainConfig(
@@ -289,7 +290,10 @@ def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
         loss=c.LossConfig(gamma=0.5),
     )
     resumed = Dojo(dojo.q_network, dojo.env, changed)
-    resumed.load_checkpoint(checkpoints.latest())
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointsError, match=f"no readable checkpoint in {tmp_path}/empty/"):
+        resumed.load_checkpoint(tmp_path / "empty")  # a directory without a run
+    resumed.load_checkpoint(tmp_path)  # the run directory: its newest checkpoint
     assert [list(row) for row in resumed.history] == [list(row) for row in dojo.history]
     assert resumed.optimizer.param_groups[0]["lr"] == 3e-4
     assert float(resumed.loss.value_estimator.gamma) == 0.5
