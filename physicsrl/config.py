@@ -464,11 +464,13 @@ def typed(cfg) -> Any:
 def train_config(config: TrainConfig | Mapping | None = None) -> TrainConfig:
     """``config`` as a :class:`TrainConfig`: itself, the defaults (None), or a mapping of its
     keys (nested dicts or a ``DictConfig``, e.g. ``{"optim": {"lr": 3e-4}}``) on the defaults,
-    checked as the command line's (an unknown key or a bad value raises, naming the key)."""
+    checked as the command line's (an unknown key or a bad value raises, naming the key), its
+    ``${held_out:n}`` resolved as in the YAML."""
     if isinstance(config, TrainConfig):
         return config
     from omegaconf import OmegaConf
 
+    register()
     return typed(OmegaConf.merge(OmegaConf.structured(TrainConfig), config or {}))
 
 

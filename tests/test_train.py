@@ -195,7 +195,8 @@ def test_the_dojo_takes_a_mapping_of_the_configs_keys_checked_as_the_command_lin
     """``Dojo(q, env, {"optim": {"lr": 3e-4}, ...})``: a dict or a ``DictConfig`` of the
     config's keys is the :class:`~physicsrl.config.TrainConfig` of those on the defaults, with
     the command line's checks: an unknown key, a wrong type or a bad value raises naming the
-    key, before anything is built; so does a number of iterations to train that is not one."""
+    key, before anything is built; so does a number of iterations to train that is not one.
+    The YAML's ``${held_out:n}`` resolves there too."""
     sys.path.insert(0, str(TOY.parent))
     from omegaconf import OmegaConf
     from train_toy_env import ToyChainEnv
@@ -207,10 +208,19 @@ def test_the_dojo_takes_a_mapping_of_the_configs_keys_checked_as_the_command_lin
 
     env = ToyChainEnv(Coordinator(), length=3)
     q_network = make_q_network(env)
-    settings = {"iterations": 2, "optim": {"lr": 3e-4}, "buffer": {"storage": "memmap"}}
+    settings = {
+        "iterations": 2,
+        "optim": {"lr": 3e-4},
+        "buffer": {"storage": "memmap"},
+        "eval": {"seeds": "${held_out:2}"},  # as the YAML writes them
+    }
     expected = c.TrainConfig(
-        iterations=2, optim=c.OptimConfig(lr=3e-4), buffer=c.BufferConfig(storage=c.Storage.memmap)
+        iterations=2,
+        optim=c.OptimConfig(lr=3e-4),
+        buffer=c.BufferConfig(storage=c.Storage.memmap),
+        eval=c.Evaluation(seeds=c.held_out_seeds(2)),
     )
+    OmegaConf.clear_resolver("held_out")  # as in a script that has not run a command
     for config in (settings, OmegaConf.create(settings)):
         assert Dojo(q_network, env, config).config == expected
     for bad, named in [
