@@ -201,13 +201,19 @@ class Dojo:
         total (restored ones included).
 
         Stops early, after a checkpoint, on SIGINT/SIGTERM (when called from the main thread
-        with ``handle_signals``) or :meth:`request_stop`. Returns :meth:`summary`.
+        with ``handle_signals``) or :meth:`request_stop`. Returns :meth:`summary`. A new run
+        (no checkpoint loaded or written) refuses a ``log_dir`` that holds checkpoints.
         """
         config = self.config
         iterations = (
             config.iterations if iterations is None else integer("iterations", iterations, 1)
         )
         check_seeds(config.seed, iterations, self.eval_seeds)
+        if self._saved_iteration < 0 and self.checkpoints and self.checkpoints.latest():
+            raise FileExistsError(  # its checkpoints would mix with this run's
+                f"log_dir={self.log_dir} holds another run's checkpoints: load_checkpoint(log_dir) "
+                "continues it, a new run needs another directory"
+            )
         if self.counters.iteration >= iterations:  # a resume of a finished run
             log.warning(
                 "nothing to train: iteration %d of %d is done (raise iterations to train on)",

@@ -316,6 +316,8 @@ def test_the_last_checkpoint_holds_the_final_evaluation(tmp_path):
 
 
 def test_a_resume_of_a_finished_run_says_there_is_nothing_to_train(tmp_path, caplog):
+    """A resume of a finished run warns that there is nothing to train; a new run in the
+    finished run's directory (without loading its checkpoint) is refused before it writes."""
     from physicsrl import config as c
     from physicsrl.checkpoint import Checkpoints
 
@@ -327,6 +329,10 @@ def test_a_resume_of_a_finished_run_says_there_is_nothing_to_train(tmp_path, cap
     train_toy_chain(config, 2, log_dir=tmp_path)
     assert "nothing to train" not in caplog.text
     latest = Checkpoints(tmp_path / "checkpoints", keep=3).latest()
+    written = latest.read_bytes()
+    with pytest.raises(FileExistsError, match=f"log_dir={tmp_path} holds another run's"):
+        train_toy_chain(config, 3, log_dir=tmp_path)  # a new run there: refused, nothing written
+    assert Checkpoints(tmp_path / "checkpoints", keep=3).latest().read_bytes() == written
     dojo = train_toy_chain(config, 2, log_dir=tmp_path, resume=latest)
     assert "nothing to train: iteration 2 of 2 is done" in caplog.text
     assert dojo.counters.iteration == 2 and [r["iteration"] for r in dojo.history] == [2]
