@@ -254,6 +254,18 @@ def test_help_says_what_the_command_does_once_under_two_ranks(tmp_path, command)
     assert helped.stdout.count("--hydra-help lists Hydra's own flags") == 1, helped.stdout
 
 
+def test_without_dolfinx_the_simulators_say_how_to_install_it():
+    """``pip install physicsrl`` without the ``fem`` extra, on a machine without DOLFINx: the
+    import names the extra (it said ``No module named 'dolfinx'``)."""
+    hidden = "import sys; sys.modules['dolfinx'] = None; import physicsrl.envs"
+    result = subprocess.run([sys.executable, "-c", hidden], capture_output=True, text=True)
+    assert result.returncode == 1
+    assert result.stderr.splitlines()[-1] == (
+        "ImportError: physicsrl's simulators need DOLFINx 0.11 (with petsc4py and mpi4py): pip "
+        "install 'physicsrl[fem]' for the wheels, or load your site's DOLFINx"
+    )
+
+
 def test_configs_are_found_from_a_built_wheel(tmp_path):
     """Build the wheel, install it alone into a fresh venv, run the console script elsewhere.
 

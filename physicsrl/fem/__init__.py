@@ -9,6 +9,13 @@ try:
     import dolfinx_solver  # noqa: F401
 except ImportError:
     pass
+try:
+    import dolfinx  # noqa: F401
+except ImportError as error:
+    raise ImportError(
+        "physicsrl's simulators need DOLFINx 0.11 (with petsc4py and mpi4py): pip install "
+        "'physicsrl[fem]' for the wheels, or load your site's DOLFINx"
+    ) from error
 
 from physicsrl.fem.errors import InvalidValue, SimulationDiverged  # noqa: E402
 from physicsrl.fem.heat import HeatEnvironment, default_heat_mesh  # noqa: E402
