@@ -192,6 +192,14 @@ def test_bad_config_values_raise_naming_the_key(groups, override, message):
         make_env(load_config(*groups, [override]), Coordinator())
 
 
+def test_make_env_refuses_torch_replicas_too_large_for_memory():
+    """The torch replicas' state (48 bytes per replica and dof, on one rank) is estimated before
+    any is made: 100,000 replicas of the 60 x 60 grid (3,721 dofs) are 17.9 GB."""
+    overrides = ["env.model.backend=torch", "env.replicas=100000"]
+    with pytest.raises(ValueError, match=r"^env\.replicas=100000 would need about 17\.9 GB"):
+        make_env(load_config("ms", overrides=overrides), Coordinator())
+
+
 @pytest.mark.parametrize(
     "overrides, message",
     [
