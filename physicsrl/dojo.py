@@ -46,7 +46,7 @@ from torchrl.envs import EnvBase, RewardSum, TransformedEnv
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, CheckpointsError, State
 from physicsrl.checks import integer
-from physicsrl.config import TrainConfig, check_seeds, train_config, train_seed
+from physicsrl.config import TrainConfig, as_dict, check_seeds, train_config, train_seed
 from physicsrl.evaluation import run_episodes
 from physicsrl.tables import mean_metrics, write_csv
 
@@ -137,7 +137,9 @@ class Dojo:
         seconds and core-seconds), ``eval.csv``, checkpoints (``checkpoints/``) and a
         memory-mapped buffer (``buffer/``). ``None``: no files.
     checkpoint_extra:
-        Saved with every checkpoint under ``"extra"`` (``physicsrl-train``: the run's config).
+        Saved with every checkpoint under ``"extra"``, after ``"config"``: ``config`` as plain
+        dicts, from which ``physicsrl-eval`` rebuilds the env when it holds the task's groups
+        (``{**load_config("heat", seed=0), "iterations": 200}``).
     coordinator:
         The env's :class:`~physicsrl.coordinated.Coordinator`: time spent sending calls to the
         followers is reported as coordination time.
@@ -176,7 +178,7 @@ class Dojo:
         self.frames_per_batch = config.collector.frames(environments)
         self.action_costs = torch.tensor([float(c) for c in config.loss.action_costs])
         self.eval_seeds = [int(s) for s in config.eval.seeds]
-        self.checkpoint_extra = dict(checkpoint_extra or {})
+        self.checkpoint_extra = {"config": as_dict(config), **(checkpoint_extra or {})}
         self.coordinator = coordinator
         self.action_counts = dict(action_counts or {})
         self.cores = cores

@@ -69,7 +69,7 @@ def make_dojo(config: TrainConfig, env, coordinator=None, log_dir: Path | None =
         env,
         config,
         log_dir=log_dir,
-        checkpoint_extra={"config": as_dict(config), "environments": environments},
+        checkpoint_extra={"environments": environments},
         coordinator=coordinator,
         action_counts=task.action_counts if task else {},
         environments=environments,

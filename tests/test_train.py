@@ -780,6 +780,39 @@ def test_eval_command_tables_a_trained_run(reference, tmp_path):
     assert float(means["greedy DQN"]["return"]) == pytest.approx(trained["return"])
 
 
+def test_eval_command_rebuilds_a_run_trained_from_python(tmp_path):
+    """A Dojo built in Python records its config in its checkpoints. With the task's groups in
+    it (``{**load_config(...), ...}``), ``physicsrl-eval run=<log_dir>`` rebuilds the env and
+    tables the policy, whose mean is the Dojo's own final evaluation (same policy and seeds,
+    another process); without them, one line says how (it was a KeyError's traceback)."""
+    from physicsrl.builders import make_q_network
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.dojo import Dojo
+    from physicsrl.envs import load_config, make_env
+
+    groups = load_config("heat", seed=0, overrides=["env.mesh.cells=8"])
+    coordinator = Coordinator()
+    env = make_env(groups, coordinator)
+    settings = {
+        "iterations": 2,
+        "eval": {"seeds": held_out_seeds(3)},
+        "logger": {"progress": False},
+    }
+    with coordinator:
+        for name, config in (("with", {**groups, **settings}), ("without", settings)):
+            Dojo(make_q_network(env), env, config, log_dir=tmp_path / name).train()
+    final = Dojo(make_q_network(env), env, {**groups, **settings})
+    final.load_checkpoint(tmp_path / "with")
+    evaluate = [str(BIN / "physicsrl-eval"), "gif=false", "curve=false", "baselines=false"]
+    result = run([*evaluate, f"run={tmp_path / 'with'}", "hydra.run.dir=out"], tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    [mean] = csv.DictReader((tmp_path / "out" / "eval_summary.csv").open())
+    assert float(mean["return"]) == pytest.approx(final.history[-1]["return"])
+    result = run([*evaluate, f"run={tmp_path / 'without'}", "hydra.run.dir=out2"], tmp_path)
+    assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr
+    assert "its config names no task (env.name)" in result.stderr
+
+
 @pytest.mark.parametrize(
     "command, override, message",
     [

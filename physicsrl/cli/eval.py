@@ -79,7 +79,13 @@ def evaluate(cfg) -> None:
         from physicsrl.checkpoint import read  # TorchRL
 
         state = read(path, ["q_network", "counters", "extra"])
-    config = comm.bcast(state["extra"]["config"] if leader else None, root=0)
+    config = comm.bcast(state["extra"].get("config", {}) if leader else None, root=0)
+    if not config.get("env", {}).get("name"):
+        refuse_config(
+            f"run={cfg.run}: its config names no task (env.name) to rebuild the env from; a Dojo "
+            "built in Python records one when its config holds the task's groups: "
+            'Dojo(q_network, env, {**load_config("heat", seed=0), ...})'
+        )
     try:  # as physicsrl-train checks its config, before anything is built
         train_cfg = run_config(config, list(cfg.overrides))
         model = OmegaConf.select(train_cfg, "env.model") or {}
