@@ -80,7 +80,7 @@ def evaluate(cfg) -> None:
 
         state = read(path, ["q_network", "counters", "extra"])
     config = comm.bcast(state["extra"].get("config", {}) if leader else None, root=0)
-    if not config.get("env", {}).get("name"):
+    if not {"name", "factory"} & set(config.get("env", {})):
         refuse_config(
             f"run={cfg.run}: its config names no task (env.name) to rebuild the env from; a Dojo "
             "built in Python records one when its config holds the task's groups: "
