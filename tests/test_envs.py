@@ -141,6 +141,20 @@ def test_same_seed_same_episode():
         assert len(set(first)) > 1
 
 
+@pytest.mark.parametrize("seed", [-1, 1.5, "5"])
+def test_a_seed_that_is_not_an_integer_from_0_is_refused_naming_it(seed):
+    """``env.set_seed`` of a single env and of a batch's members: numpy said ``expected
+    non-negative integer`` (or SeedSequence's TypeError), and a batch truncated 1.5 to 1."""
+    from physicsrl.envs.members import member_seed
+
+    message = f"^{re.escape(f'seed must be an integer >= 0, got {seed!r}')}$"
+    with pytest.raises(ValueError, match=message):
+        heat_env().set_seed(seed)
+    with pytest.raises(ValueError, match=message):
+        member_seed(seed, 1)
+    assert member_seed(None, 1) is None and member_seed(np.int64(3), 0) == 3
+
+
 def test_atp_reward_by_hand():
     r = ATPReward()
     assert r({"shock": True, "success": False, "failure": False, "steps": 3}) == -10

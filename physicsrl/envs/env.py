@@ -20,6 +20,7 @@ from tensordict import TensorDict
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from physicsrl.checks import integer
 from physicsrl.envs.rewards import Reward
 from physicsrl.envs.task import ResetDiverged, Task
 
@@ -67,7 +68,7 @@ class PhysicsEnv(EnvBase):
         self._set_seed(seed)
 
     def _set_seed(self, seed: int | None) -> None:
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(None if seed is None else integer("seed", seed, 0))
 
     def rng_state(self) -> dict:
         """The state of the episode generator (checkpoints save it for an exact resume)."""

@@ -24,14 +24,16 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
+from physicsrl.checks import integer
 from physicsrl.config import SEED_STRIDE
 
 __all__ = ["Members", "OneMember", "as_members", "member_seed", "spread_episodes"]
 
 
 def member_seed(seed: int | None, index: int) -> int | None:
-    """The seed of member ``index`` of a batch seeded with ``seed``."""
-    return None if seed is None else int(seed) + index * SEED_STRIDE
+    """The seed of member ``index`` of a batch seeded with ``seed`` (an integer >= 0, else
+    ValueError naming it; None: unseeded)."""
+    return None if seed is None else integer("seed", seed, 0) + index * SEED_STRIDE
 
 
 class Members(EnvBase):
