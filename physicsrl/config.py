@@ -28,7 +28,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from physicsrl.checks import integer, number, plain, positive
+from physicsrl.checks import choice, integer, number, plain, positive
 
 HELD_OUT_START = 1_000_000_000
 SEEDS_PER_RUN = 1_000_000
@@ -124,12 +124,8 @@ class TargetKind(enum.Enum):
 
 def member(name: str, kind: type[enum.Enum], value) -> enum.Enum:
     """``value`` (a member of the Enum ``kind`` or a member's value, as a Python caller may
-    write it) as the member, else ValueError naming ``name``."""
-    try:
-        return kind(value)
-    except ValueError:
-        options = ", ".join(m.value for m in kind)
-        raise ValueError(f"{name} must be one of {options}, got {value!r}") from None
+    write it) as the member, else ValueError naming ``name`` (:func:`~physicsrl.checks.choice`)."""
+    return kind(choice(name, getattr(value, "value", value), [m.value for m in kind]))
 
 
 def fraction(name: str, value, open_low: bool = False) -> float:
