@@ -7,6 +7,7 @@ import subprocess
 import sys
 import sysconfig
 import tomllib
+import zipfile
 from functools import partial
 from pathlib import Path
 
@@ -271,7 +272,8 @@ def test_configs_are_found_from_a_built_wheel(tmp_path):
 
     The fresh venv borrows the heavy dependencies (torch, DOLFINx, MPI) from the test's
     environment through a .pth file; physicsrl itself comes only from the wheel, and its
-    ``__version__`` is pyproject's.
+    ``__version__`` is pyproject's. The wheel carries the license that pyproject declares, with
+    its text.
     """
     subprocess.run(
         [
@@ -295,6 +297,11 @@ def test_configs_are_found_from_a_built_wheel(tmp_path):
     site = next((fresh / "lib").glob("python3*/site-packages"))
     (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     [wheel] = (tmp_path / "dist").glob("physicsrl-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        [metadata] = [n for n in archive.namelist() if n.endswith(".dist-info/METADATA")]
+        assert "License-Expression: MIT" in archive.read(metadata).decode().splitlines()
+        licence = metadata.replace("METADATA", "licenses/LICENSE")
+        assert archive.read(licence) == (ROOT / "LICENSE").read_bytes()
     subprocess.run(
         [
             sys.executable,
