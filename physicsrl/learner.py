@@ -1,7 +1,8 @@
-"""The learner's side of ``physicsrl-train`` (world rank 0; torch and TorchRL): where a run
-continues from (:func:`resume_point`), the :class:`~physicsrl.dojo.Dojo` of a config
-(:func:`make_dojo`), the training and its summary (:func:`train_on_leader`) and the task's
-baselines. :func:`physicsrl.training.train` runs it on every rank's behalf.
+"""The learner's side of ``physicsrl-train`` and ``physicsrl-eval`` (world rank 0; torch and
+TorchRL): where a run continues from (:func:`resume_point`), the
+:class:`~physicsrl.dojo.Dojo` of a config (:func:`make_dojo`), the training and its summary
+(:func:`train_on_leader`), the task's baselines, and the evaluation of a stored run
+(:func:`evaluate_on_leader`). The jobs of :mod:`physicsrl.jobs` run it on every rank's behalf.
 """
 
 from __future__ import annotations
@@ -14,16 +15,29 @@ from pathlib import Path
 
 from mpi4py import MPI
 
-from physicsrl import builders
+from physicsrl import builders, learning_curve
 from physicsrl.checkpoint import Checkpoints, read
-from physicsrl.config import TrainConfig, as_dict, check_sweep_resume
+from physicsrl.cli.command import refuse_config
+from physicsrl.config import (
+    EvalConfig,
+    TrainConfig,
+    as_dict,
+    check_sweep_resume,
+    held_out_seeds,
+    is_held_out,
+    training_seeds_among,
+)
 from physicsrl.dojo import Dojo, NonFiniteTraining
+from physicsrl.envs.env import PhysicsEnv
+from physicsrl.envs.groups import GroupedEnv
 from physicsrl.envs.members import Members
 from physicsrl.envs.task import ResetDiverged, Task
 from physicsrl.evaluation import compare
-from physicsrl.launch import refuse, sweeping
+from physicsrl.fem import FieldRecorder
+from physicsrl.fem.output import render_series
+from physicsrl.launch import output_dir, refuse, sweeping
 from physicsrl.run_directory import RESUMED, find_run
-from physicsrl.tables import format_table, provenance, rounded
+from physicsrl.tables import format_table, provenance, rounded, write_csv
 
 log = logging.getLogger("physicsrl.train")
 
@@ -227,3 +241,78 @@ def format_summary(summary: dict, table: list[dict], log_dir: Path, task: Task |
             lines.extend(task.scores({row["policy"]: row["return"] for row in table}))
     lines.append(f"run directory: {log_dir}")
     return "\n".join(lines)
+
+
+def evaluate_on_leader(
+    cfg: EvalConfig,
+    train_cfg: TrainConfig,
+    env,
+    state: dict,
+    path: Path,
+    recorder: FieldRecorder | None = None,
+) -> None:
+    """Evaluate the greedy policy of the checkpoint ``path`` (its ``state``: ``q_network``,
+    ``counters``, ``extra``) beside the task's baselines on ``cfg``'s seeds; print the table and
+    write ``eval.csv``, ``eval_summary.csv``, the learning curve, the episode GIF and, with a
+    ``recorder``, the episode's fields into the command's run directory."""
+    from physicsrl.render import episode_gif, record_fields  # matplotlib, imageio: 0.4 s
+
+    dojo = make_dojo(train_cfg, env)
+    try:
+        dojo.q_network.load_state_dict(state["q_network"])
+    except RuntimeError as error:  # overrides that change the observation's size
+        shapes = " ".join(str(error).split()).split("size mismatch for ")[-1]
+        refuse_config(f"overrides: the stored weights do not fit this env's network ({shapes})")
+    seeds = cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds
+    seeds = held_out_seeds(seeds) if isinstance(seeds, int) else [int(s) for s in seeds]
+    policies = {"greedy DQN": dojo.q_network}
+    try:  # the first reset (a baseline's search runs episodes too) finds the overrides' numerics
+        if cfg.baselines:
+            policies.update(baselines(env, train_cfg, seeds))
+        per_seed, means = compare(env, policies, seeds, dojo.action_counts)
+    except ResetDiverged as error:
+        refuse_config(f"overrides: {error}")
+    directory = output_dir()
+    write_csv(directory / "eval.csv", per_seed)
+    write_csv(directory / "eval_summary.csv", means)
+    iterations = state["counters"]["iteration"]
+    trained = training_seeds_among(train_cfg.seed, iterations, seeds)
+    if trained:
+        print(f"warning: seeds {trained[:3]} seeded this run's training batches (seed * 1e6 + i)")
+    kind = "held-out seeds" if all(map(is_held_out, seeds)) and not trained else "seeds"
+    print(
+        f"checkpoint {path} (iteration {iterations}, {state['counters']['frames']} env steps); "
+        f"{len(seeds)} {kind}, mean per episode:"
+    )
+    print(format_table(rounded(means)))
+    print(f"results: {directory / 'eval_summary.csv'} (per seed: eval.csv)")
+    if cfg.curve:
+        run_dir = path.parent.parent
+        environments = state["extra"].get("environments", 1)
+        ranks = learning_curve.job_ranks(run_dir) or environments * train_cfg.mpi.ranks_per_env
+        # the bars only where they were measured as the curve was: its seeds, its settings
+        alike = seeds == list(state["extra"]["config"]["eval"]["seeds"]) and not cfg.overrides
+        bars = means if alike else ()
+        png = directory / "learning_curve.png"  # to the evaluated checkpoint's iteration
+        curve = learning_curve.plot(run_dir, png, bars, ranks, until=iterations)
+        if curve is not None:
+            unlike = "" if alike else " (no baselines: these seeds or settings are not the run's)"
+            print(f"learning curve: {curve}{unlike}")
+    succeeded = [r["seed"] for r in per_seed if r["policy"] == "greedy DQN" and r.get("success")]
+    seed = int(cfg.gif_seed if cfg.gif_seed is not None else (succeeded or seeds)[0])
+    single = env.local_env if isinstance(env, GroupedEnv) else env
+    if recorder is not None:
+        series = record_fields(single, dojo.q_network, seed, recorder)
+        render_series(series, "u", len(series.times) - 1, directory / "fields.png")
+        print(
+            f"fields of seed {seed} ({', '.join(series.values)} at {len(series.times)} times): "
+            f"{recorder.path} (ParaView), last u: {directory / 'fields.png'}"
+        )
+    if cfg.gif and not isinstance(single, PhysicsEnv):
+        print("no episode GIF: it needs a physics task's env on the PETSc backend")
+    elif cfg.gif:
+        gif = episode_gif(single, dojo.q_network, seed, directory / "episode.gif", fps=cfg.fps)
+        print(
+            f"episode of seed {seed}: actions {gif['actions']}, return {sum(gif['rewards']):.3f}: "
+            f"{directory / 'episode.gif'}"
+        )

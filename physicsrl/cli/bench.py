@@ -16,7 +16,13 @@ import math
 import shlex
 import sys
 
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf
+
 from physicsrl.bench import SETTINGS
+from physicsrl.checks import build, plain
+from physicsrl.cli.command import validate_or_exit
+from physicsrl.config import MESH_BYTES_PER_CELL, check_needs
 from physicsrl.guard import guard
 from physicsrl.launch import check_layout, output_dir, refuse, relaunch, run_hydra
 from physicsrl.tables import format_table, write_csv
@@ -36,8 +42,6 @@ USAGE = "usage: physicsrl-bench NAME [key=value ...] [mpi.ranks=N] [--help | --c
 def check_settings(cfg, settings: dict[str, tuple[type | tuple[str, ...], float | None]]) -> None:
     """ValueError naming a setting that is not of its type (int, float or bool) or is below its
     least value (None: no bound), or is not one of its choices (a tuple of strings)."""
-    from omegaconf import OmegaConf
-
     for key, (kind, least) in settings.items():
         value = OmegaConf.select(cfg, key)
         if isinstance(kind, tuple):
@@ -64,8 +68,6 @@ def check(cfg, job, name: str) -> None:
     simulators it builds, within ``max_memory_gb``, as ``physicsrl-train`` estimates it (ms:
     each simulator it keeps, the report's LU baseline counted as one more; env and groups: the
     task's); nothing is built."""
-    from physicsrl.config import MESH_BYTES_PER_CELL, check_needs
-
     check_settings(cfg, SETTINGS[name])
     needs = {}
     if name == "ms":
@@ -83,8 +85,7 @@ def check(cfg, job, name: str) -> None:
     if name == "groups":
         check_layout(cfg.mpi.ranks_per_env, job.ranks)
     if "overrides" in cfg:
-        from physicsrl.checks import build, plain
-        from physicsrl.envs import TASKS, load_config
+        from physicsrl.envs import TASKS, load_config  # MPI: after the re-launch
         from physicsrl.envs.factory import simulator_needs
 
         groups = plain(load_config("ms", overrides=list(cfg.overrides)))
@@ -106,8 +107,6 @@ def check(cfg, job, name: str) -> None:
 def report(name: str, rows: list[dict], goals: list[tuple[str, bool]]) -> None:
     """Print the table and goals, and write them beside the command line that reruns this job
     (a sweep's job: its own values) (leader only)."""
-    from hydra.core.hydra_config import HydraConfig
-
     print(format_table(rows))
     for text, met in goals:
         print(f"goal {'met' if met else 'MISSED'}: {text}")
@@ -132,13 +131,11 @@ def main() -> None:
         refuse(f"unknown benchmark {name!r}; {choose}")
     relaunch(overrides)
     guard()
-    from physicsrl.cli.command import validate_or_exit
-
     validate_or_exit(f"bench_{name}", overrides, lambda cfg, job: check(cfg, job, name))
     module = importlib.import_module(f"physicsrl.bench.{name}")
 
     def task(cfg) -> None:
-        from mpi4py import MPI
+        from mpi4py import MPI  # after the re-launch
 
         rows = module.run(cfg)
         if MPI.COMM_WORLD.rank == 0:

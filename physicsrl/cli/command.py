@@ -2,10 +2,10 @@
 config, check it on every rank, and turn a bad value into one line naming the key (exit status
 2, printed by the leader only).
 
-The config and the tasks are imported inside the functions: they import MPI (through the
-simulators), which must not start before :func:`~physicsrl.launch.relaunch` re-executes the
-command under ``mpiexec``. The job's own code (torch, TorchRL: ~6 s) is imported after the
-checks, so that a bad command line is answered in about a second.
+The tasks are imported inside the commands' checks: they import MPI (through the simulators),
+which must not start before :func:`~physicsrl.launch.relaunch` re-executes the command under
+``mpiexec``. The job's own code (torch, TorchRL: ~6 s) is imported after the checks, so that a
+bad command line is answered in about a second.
 """
 
 from __future__ import annotations
@@ -17,9 +17,18 @@ import sys
 from collections.abc import Callable
 from typing import NoReturn
 
+from hydra import compose as hydra_compose
+from hydra import initialize_config_module
+from hydra._internal.config_loader_impl import ConfigLoaderImpl
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra._internal.utils import create_config_search_path
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import MissingMandatoryValue, OmegaConf
 
+from physicsrl.config import check_sweep_resume, register, typed
 from physicsrl.guard import guard
+from physicsrl.imports import load_object
 from physicsrl.launch import Job, refuse, relaunch, run_hydra
 
 MULTIRUN = {"-m", "--multirun"}
@@ -59,12 +68,6 @@ def compose(config_name: str, overrides: list[str], hydra: bool = False):
     """The job config (no Hydra section: the command line's Hydra settings are left out, but
     where to find configs), or with ``hydra`` the whole config (``overrides`` without
     sweeps); ValueError with a one-line message."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    from physicsrl.config import register
-
     register()
     if not hydra:
         overrides = [
@@ -90,8 +93,6 @@ def validate_or_exit(config_name: str, overrides: list[str], check: Callable) ->
     comma-separated values) before any starts; nothing with
     Hydra's print-only flags. On error the leader prints one line (naming the sweep's job) and
     every rank exits with status 2 (all ranks see the same config, so no rank waits)."""
-    from physicsrl.config import check_sweep_resume
-
     flags = {o for o in overrides if o.startswith("-")}
     if not flags <= MULTIRUN:
         return
@@ -127,8 +128,6 @@ def refuse_config(error: ValueError | str) -> NoReturn:
 def validate(config_name: str, overrides: list[str], check: Callable, place: Job):
     """Compose, type (a config with a schema) and ``check(cfg, place)`` the config of
     ``overrides``, a job that runs at ``place``; return it. ValueError with one line."""
-    from physicsrl.config import typed
-
     try:
         cfg = compose(config_name, overrides)
         if dataclasses.is_dataclass(OmegaConf.get_type(cfg)):
@@ -201,11 +200,6 @@ def check_slurm_answers() -> None:
 def sweep_jobs(overrides: list[str]) -> list[list[str]]:
     """The overrides of each job of a sweep of ``overrides``, as Hydra's basic sweeper
     expands them; ``glob(...)`` of a group lists its shipped options."""
-    from hydra._internal.config_loader_impl import ConfigLoaderImpl
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra._internal.utils import create_config_search_path
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     loader = ConfigLoaderImpl(
         config_search_path=create_config_search_path(f"pkg://{CONFIG_MODULE}")
     )
@@ -223,14 +217,10 @@ def main(config_name: str, task: str, check: Callable) -> None:
     overrides = sys.argv[1:]
     relaunch(overrides)
     guard()
-    from physicsrl.config import register
-
     register()
     validate_or_exit(config_name, overrides, check)
 
     def job(cfg) -> None:  # the job's code (torch where a rank holds an env): after the checks
-        from physicsrl.imports import load_object
-
         load_object(task)(cfg)
 
     run_hydra(config_name, job, overrides)

@@ -7,22 +7,23 @@ sections named after the TorchRL objects they configure (``collector``, ``buffer
 ``optim``, ``logger``, ``checkpoint``, ``eval``). The config is checked on every rank before
 anything is simulated: an unknown key, a wrong type or a bad value exits with status 2 and one
 line naming the key.
-Then every rank runs :func:`physicsrl.training.train`.
+Then every rank runs :func:`physicsrl.jobs.train`.
 """
 
 from __future__ import annotations
 
+from omegaconf import OmegaConf
+
+from physicsrl.checks import plain
 from physicsrl.cli import command
+from physicsrl.config import check_memory, typed
+from physicsrl.launch import check_backend, check_layout
 
 
 def check_task(cfg, job) -> None:
     """The layout of environments over the ranks of the job (a :class:`~physicsrl.launch.Job`)
     and the backend's (a group's replicas run on one rank, a CUDA device is there, if the job
     runs here), then :func:`check_run`."""
-    from omegaconf import OmegaConf
-
-    from physicsrl.launch import check_backend, check_layout
-
     check_layout(cfg.mpi.ranks_per_env, job.ranks)
     model = OmegaConf.select(cfg, "env.model") or {}
     device = model.get("device") if job.here else None
@@ -37,14 +38,11 @@ def check_run(cfg) -> None:
     mesh, per rank (:func:`~physicsrl.config.check_memory`); nothing is built.
     An env from ``env.factory`` checks its own settings (its keys and sizes are not known
     before it is built: each network input counts as one number)."""
-    from physicsrl.config import check_memory, typed
-
     config = typed(cfg)
     if cfg.env.get("factory"):
         check_memory(config, {}, n_actions=2)
         return
-    from physicsrl.checks import plain
-    from physicsrl.envs.factory import parts, simulator_needs
+    from physicsrl.envs.factory import parts, simulator_needs  # MPI: after the re-launch
     from physicsrl.envs.task import SquareMesh
 
     observation, reward, task, task_config = parts(plain(cfg))
@@ -88,7 +86,7 @@ def train_config(overrides: list[str]):
 
 
 def main() -> None:
-    command.main("train", "physicsrl.training:train", check_task)
+    command.main("train", "physicsrl.jobs:train", check_task)
 
 
 if __name__ == "__main__":
