@@ -245,6 +245,19 @@ def test_print_only_flags_print_once_under_two_ranks(tmp_path):
     assert info.returncode == 0 and info.stdout.count("Defaults List") == 1, info.stderr
 
 
+def test_print_only_flags_resolve_the_benchmarks_defaults(tmp_path):
+    """``physicsrl-bench ms --cfg job --resolve`` prints the memory cap that the YAML takes
+    from the training's default (``${train_default:max_memory_gb}``); it raised
+    ``UnsupportedInterpolationType``: the resolvers were registered by the checks, which
+    print-only flags skip."""
+    from physicsrl.config import train_default
+
+    bench = str(BIN / "physicsrl-bench")
+    config = run([bench, "ms", "--cfg", "job", "--resolve"], cwd=tmp_path, timeout=60)
+    assert config.returncode == 0, config.stderr
+    assert f"max_memory_gb: {train_default('max_memory_gb')}" in config.stdout.splitlines()
+
+
 @pytest.mark.parametrize(
     "command", [["physicsrl-train"], ["physicsrl-eval"], ["physicsrl-bench", "ping"]]
 )

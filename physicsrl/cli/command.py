@@ -87,12 +87,14 @@ def compose(config_name: str, overrides: list[str], hydra: bool = False):
 
 
 def validate_or_exit(config_name: str, overrides: list[str], check: Callable) -> None:
-    """Compose the config of the command line, run every range check of its schema and
-    ``check(cfg, job)`` on this rank (``job``: where it runs, :func:`sweep`), for the job
-    or, with ``-m``, every job of the sweep (Hydra's basic sweeper: the product of the
-    comma-separated values) before any starts; nothing with
-    Hydra's print-only flags. On error the leader prints one line (naming the sweep's job) and
-    every rank exits with status 2 (all ranks see the same config, so no rank waits)."""
+    """Make the schemas and resolvers known (:func:`~physicsrl.config.register`: Hydra's
+    print-only flags resolve them too), then compose the config of the command line, run every
+    range check of its schema and ``check(cfg, job)`` on this rank (``job``: where it runs,
+    :func:`sweep`), for the job or, with ``-m``, every job of the sweep (Hydra's basic sweeper:
+    the product of the comma-separated values) before any starts; nothing with Hydra's
+    print-only flags. On error the leader prints one line (naming the sweep's job) and every
+    rank exits with status 2 (all ranks see the same config, so no rank waits)."""
+    register()
     flags = {o for o in overrides if o.startswith("-")}
     if not flags <= MULTIRUN:
         return
@@ -217,7 +219,6 @@ def main(config_name: str, task: str, check: Callable) -> None:
     overrides = sys.argv[1:]
     relaunch(overrides)
     guard()
-    register()
     validate_or_exit(config_name, overrides, check)
 
     def job(cfg) -> None:  # the job's code (torch where a rank holds an env): after the checks
