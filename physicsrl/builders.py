@@ -97,11 +97,8 @@ class Normalizer(nn.Module):
         return {"loc": self.loc.clone(), "scale": self.scale.clone(), "fitted": self.fitted}
 
     def set_extra_state(self, state: dict) -> None:
-        self.loc, self.scale, self.fitted = (
-            state["loc"].clone(),
-            state["scale"].clone(),
-            state["fitted"],
-        )
+        self.loc, self.scale = state["loc"].clone(), state["scale"].clone()
+        self.fitted = state["fitted"]
 
     def extra_repr(self) -> str:
         return f"size={self.loc.numel()}, fitted={self.fitted}"

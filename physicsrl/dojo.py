@@ -42,6 +42,7 @@ from torchrl.checkpoint import Checkpoint, GlobalRNGState, StateDictCheckpointAd
 from torchrl.collectors import Collector
 from torchrl.data.postprocs import MultiStep
 from torchrl.envs import EnvBase, RewardSum, TransformedEnv
+from tqdm import tqdm
 
 from physicsrl import builders
 from physicsrl.checkpoint import Checkpoints, CheckpointsError, State
@@ -238,7 +239,15 @@ class Dojo:
             self._set_rng_state(self._pending_rng)
             self._pending_rng = None
         restore = self._install_signal_handlers() if handle_signals else None
-        bar = self._progress_bar(iterations)
+        bar = tqdm(
+            total=iterations,
+            initial=self.counters.iteration,
+            desc="train",
+            unit="it",
+            dynamic_ncols=True,
+            mininterval=0.5,
+            disable=not config.logger.progress,
+        )
         batches = iter(collector)
         try:
             while self.counters.iteration < iterations and self.stopped is None:
@@ -268,21 +277,17 @@ class Dojo:
                 self._log_iteration(data.numel(), collect_s, losses, returns)
                 if self._due(config.checkpoint.every):
                     self.save_checkpoint()
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(self._postfix(returns), refresh=False)
+                bar.update(1)
+                bar.set_postfix(self._postfix(returns), refresh=False)
         finally:
             if restore is not None:
                 restore()
-            if bar is not None:
-                bar.close()
+            bar.close()
         last = self.history[-1]["iteration"] if self.history else None
         final = self.stopped is None and last != self.counters.iteration
         if final:
             self.evaluate()  # the final greedy policy, kept in the last checkpoint too
-        if self.checkpoints is not None and (
-            final or self._saved_iteration != self.counters.iteration
-        ):
+        if final or self._saved_iteration != self.counters.iteration:
             self.save_checkpoint()
         if self.stopped is not None:
             log.warning("stopped at iteration %d: %s", self.counters.iteration, self.stopped)
@@ -554,20 +559,6 @@ class Dojo:
                         self._cost_writers[axis].add_scalar(f"{axis}/{name}", value, step)
         if self.log_dir is not None:
             write_csv(self.log_dir / "eval.csv", self.history)
-
-    def _progress_bar(self, iterations: int):
-        if not self.config.logger.progress:
-            return None
-        from tqdm import tqdm
-
-        return tqdm(
-            total=iterations,
-            initial=self.counters.iteration,
-            desc="train",
-            unit="it",
-            dynamic_ncols=True,
-            mininterval=0.5,
-        )
 
     def _postfix(self, returns: list[float]) -> dict:
         postfix = {"eps": f"{float(self.exploration[-1].eps):.2f}", "frames": self.counters.frames}

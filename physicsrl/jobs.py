@@ -18,10 +18,6 @@ each job's own run directory (give the earlier sweep's ``hydra.sweep.dir``), and
 dir>`` is refused (every job would continue that one run). A checkpoint directory that cannot
 be written, or a resume without a readable checkpoint, is one line (exit status 2) before any
 environment is built.
-
-``evaluate``: every rank rebuilds the run's env from the config stored in its checkpoint; the
-leader evaluates the stored greedy policy beside the baselines (:func:`~physicsrl.learner.
-evaluate_on_leader`).
 """
 
 from __future__ import annotations
@@ -41,15 +37,13 @@ from physicsrl.envs.factory import builds_env, make_env_for_rank
 from physicsrl.envs.layout import environments
 from physicsrl.envs.task import Task
 from physicsrl.fem import FieldRecorder
-from physicsrl.launch import check_backend, output_dir, refuse
-from physicsrl.run_directory import checkpoint_path
+from physicsrl.launch import check_backend, output_dir
+from physicsrl.run_directory import agree, checkpoint_path
 
 
 def train(cfg) -> None:
-    """Every rank: build the env; the leader trains and reports (:mod:`physicsrl.learner`),
-    the other ranks serve. Only the ranks that hold a TorchRL env (world rank 0 and the
-    other group leaders) import torch: a rank that serves only its group leader's simulator
-    calls builds the task alone (:func:`~physicsrl.envs.factory.make_env_for_rank`)."""
+    """Every rank: build the env; the leader trains and reports
+    (:func:`~physicsrl.learner.train_on_leader`), the other ranks serve."""
     config: TrainConfig = typed(cfg)
     comm = MPI.COMM_WORLD
     leader = comm.rank == 0
@@ -62,18 +56,10 @@ def train(cfg) -> None:
     random.seed(config.seed)
     run_dir = output_dir()
 
-    # where to continue from, and whether checkpoints can be written: the leader decides
-    resume, error = None, None
     if leader:
         from physicsrl import learner  # torch and TorchRL: the learner's rank only
-
-        try:
-            resume = learner.resume_point(config, run_dir)
-        except (OSError, ValueError) as problem:
-            error = str(problem)
-    resume, error = comm.bcast((resume, error), root=0)
-    if error:
-        refuse(error)
+    # where to continue from, and whether checkpoints can be written: the leader decides
+    resume = agree(lambda: learner.resume_point(config, run_dir), (OSError, ValueError))
     if not leader:  # the leader checkpoints and releases the followers on a signal
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)

@@ -45,24 +45,20 @@ log = logging.getLogger("physicsrl.train")
 def resume_point(config: TrainConfig, run_dir: Path) -> Path | None:
     """The checkpoint to continue from (None: a new run) and whether checkpoints can be
     written (the leader's checks before any environment is built); OSError or ValueError in
-    one line."""
+    one line. In a sweep each job resumes its own run directory (ValueError for one run
+    directory named for every job)."""
     resume = None
     if config.resume not in (None, False):
-        resume_dir = find_run(resume_request(str(config.resume), run_dir), run_dir.parent)
+        request = str(config.resume)
+        if sweeping():
+            check_sweep_resume(request)
+            request = str(run_dir)
+        resume_dir = find_run(request, run_dir.parent)
         resume = Checkpoints(resume_dir / "checkpoints", 1).newest_readable()
         check_same_task(read(resume, ["extra"])["extra"].get("config", {}), as_dict(config))
     log_dir = run_dir if resume is None else resume.parent.parent
     Checkpoints(log_dir / "checkpoints", config.checkpoint.keep).check_writable()
     return resume
-
-
-def resume_request(resume: str, run_dir: Path) -> str:
-    """What to resume (:func:`~physicsrl.run_directory.find_run`'s ``resume``): in a sweep, each
-    job its own run directory; ValueError for one run directory named for every job."""
-    if not sweeping():
-        return resume
-    check_sweep_resume(resume)
-    return str(run_dir)
 
 
 def task_of(env) -> Task | type[Task] | None:
@@ -127,7 +123,11 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     dojo = make_dojo(config, env, coordinator, log_dir)
     if resume is not None:
         extra = dojo.load_checkpoint(resume)
-        check_environments(extra.get("environments", 1), n_environments(env))
+        if (before := extra.get("environments", 1)) != n:  # their episode generators resume
+            refuse(
+                f"the checkpoint's run had {before} environment(s), this job has {n} "
+                "(mpi.ranks / mpi.ranks_per_env): resume with the same number"
+            )
         warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
     if log_dir != run_dir:
         (run_dir / RESUMED).write_text(
@@ -142,7 +142,7 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
         raise SystemExit(1) from None
     summary["wall_s"] = time.perf_counter() - started  # this command's (total_s: the run's)
     summary["resumed_from"] = None if resume is None else str(resume)
-    summary["ranks"], summary["environments"] = ranks, n_environments(env)  # for core-hours
+    summary["ranks"], summary["environments"] = ranks, n  # for core-hours
     table, stopped = [], dojo.stopped
     if dojo.history:  # a stop request skips the baselines: it should end quickly
         counters = ("iteration", "frames", "wall_s")
@@ -154,7 +154,7 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
                 table += compare(env, policies, config.eval.seeds, dojo.action_counts)[1]
             except KeyboardInterrupt:  # Ctrl-C after training: the summary, without them
                 stopped = summary["baselines"] = "received SIGINT"
-    report = format_summary(summary, table, log_dir, task_of(env))
+    report = format_summary(summary, table, log_dir, task)
     print(report, flush=True)
     (log_dir / "summary.txt").write_text(report + "\n")
     (log_dir / "summary.json").write_text(
@@ -166,16 +166,6 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
 def n_environments(env) -> int:
     """N: the environments behind ``env`` (a batch's members, else 1)."""
     return env.batch_size[0] if isinstance(env, Members) else 1
-
-
-def check_environments(before: int, n_envs: int) -> None:
-    """Exit with one line unless the checkpoint's run had ``n_envs`` environments: their
-    episode generators are part of the exact resume."""
-    if before != n_envs:
-        refuse(
-            f"the checkpoint's run had {before} environment(s), this job has {n_envs} "
-            "(mpi.ranks / mpi.ranks_per_env): resume with the same number"
-        )
 
 
 TASK_KEYS = ("env.name", "env.module", "observation.name", "reward.name")

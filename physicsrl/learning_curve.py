@@ -90,11 +90,7 @@ def plot(
     if not rows or "wall_s" not in rows[0]:
         return None
     ranks = ranks or job_ranks(run_dir)
-    title = (
-        f"{Path(run_dir).name}: {ranks} rank{'s' * (ranks != 1)}"
-        if ranks
-        else f"{Path(run_dir).name}: 1 rank?"
-    )
+    said = f"{ranks} rank{'s' * (ranks != 1)}" if ranks else "1 rank?"
     x = curves(rows, ranks or 1)
     metrics = {m: label for m, label in METRICS.items() if m in rows[0]}
     bars = [b for b in bars if b["policy"] != "greedy DQN"]
@@ -112,7 +108,7 @@ def plot(
             ax.set(xlabel=cost, ylabel=label if j == 0 else None)
             ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8)
-    figure.suptitle(title)
+    figure.suptitle(f"{Path(run_dir).name}: {said}")
     figure.tight_layout()
     figure.savefig(path, dpi=120)
     plt.close(figure)

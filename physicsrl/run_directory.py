@@ -13,6 +13,7 @@ import os
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from hydra.experimental.callback import Callback
 
@@ -65,21 +66,21 @@ SWEEP_CHECKPOINTS = (
 )
 
 
-def agree(check: Callable[[], None]) -> None:
-    """The leader runs ``check``; every rank learns whether it raised an OSError (collective)
-    and, if it did, ends with status 2 and its message in one line."""
+def agree(check: Callable[[], Any], errors: tuple[type[Exception], ...] = (OSError,)) -> Any:
+    """The leader runs ``check``; every rank gets its value, or learns that it raised one of
+    ``errors`` (collective) and then ends with status 2 and its message in one line."""
     from mpi4py import MPI
 
-    comm = MPI.COMM_WORLD
-    problem = None
-    if comm.rank == 0:
+    value, problem = None, None
+    if MPI.COMM_WORLD.rank == 0:
         try:
-            check()
-        except OSError as error:
+            value = check()
+        except errors as error:
             problem = str(error)
-    problem = comm.bcast(problem, 0)
+    value, problem = MPI.COMM_WORLD.bcast((value, problem), 0)
     if problem is not None:
         refuse(problem)
+    return value
 
 
 def check_directory(key: str, directory: str, taken: dict[str, str]) -> None:
