@@ -1017,7 +1017,15 @@ def test_worked_table_comes_from_the_stored_readings(tmp_path):
     assert lines[2:] == stored[2:] and len(lines) == 2 + 1 + 23
 
 
-@pytest.mark.parametrize("tag", ["basket80", "gate"])
+@pytest.mark.parametrize(
+    "tag",
+    [
+        # the same kind of row as the gate's (make test-resolved); the script's test checks
+        # the basket's readings against the pentaray's on its own draws
+        pytest.param("basket80", marks=pytest.mark.slow),
+        "gate",
+    ],
+)
 def test_observe_table_comes_from_the_stored_readings(tmp_path, tag):
     """``atp_shock_timing_observe_<tag>.txt`` (would 80 electrodes, or the catheter reading the
     gate w, tell the window better than the catheter's 20 readings of u?) is what ``observe``
@@ -1161,12 +1169,13 @@ ON_THE_CPU += '"env.model.compile=false","env.replicas=1"]'  # a GPU preset's ru
             [],
             marks=pytest.mark.slow,  # the same kind of row as run B's: make test-resolved
         ),
-        (
+        pytest.param(
             "atp_timing_r35_run2_agent.torchrl",
             "atp_timing_r35_run2_agent_eval.csv",
             [1, 10],  # 2 of the 3 draws that end soonest (at decision 12 of 24)
             "AVX512",
             [],
+            marks=pytest.mark.slow,  # the same kind of row as run B's: make test-resolved
         ),
         pytest.param(
             "atp_timing_r35_probes_agent.torchrl",
@@ -1251,11 +1260,12 @@ def test_stored_atp_agent_reproduces_its_rows_of_the_results_table(
     one replica per rank, give their rows exactly on such a CPU (a replica does not depend on
     its batch), and on another one row may differ (up to 3 in 20); the probe run's agent, a
     refit and the GPU run's agent (trained on a GPU, its table from this kind of CPU)
-    likewise. The first agent's row (~20 s), the timing agent's 20 draws (~100 s), the 2 draws
-    of the probe agent, the refit and the GPU run, and the resolved agents' rows (1000 x 1000,
-    with its induction: ~5 min on 2 ranks; R1's and G2's first, G3's on draw 01, which G2
-    fails; G2's and G3's on DOLFINx in float64, where their tables came from the GPU in
-    float32) run with ``make test-resolved``, outside ``make test``."""
+    likewise. Only run B's row runs in ``make test``. The first agent's row (~20 s), the
+    radius-35 agent's 2 draws (~60 s), the timing agent's 20 draws (~100 s), the 2 draws of the
+    probe agent, the refit and the GPU run, and the resolved agents' rows (1000 x 1000, with its
+    induction: ~5 min on 2 ranks; R1's and G2's first, G3's on draw 01, which G2 fails; G2's
+    and G3's on DOLFINx in float64, where their tables came from the GPU in float32) run with
+    ``make test-resolved``, outside ``make test``."""
     from tests.conftest import MPIEXEC
 
     results = ROOT / "experiments" / "results"
