@@ -123,7 +123,7 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     dojo = make_dojo(config, env, coordinator, log_dir)
     if resume is not None:
         extra = dojo.load_checkpoint(resume)
-        if (before := extra.get("environments", 1)) != n:  # their episode generators resume
+        if (before := extra.get("environments", 1)) != n:  # the exact resume needs their RNGs
             refuse(
                 f"the checkpoint's run had {before} environment(s), this job has {n} "
                 "(mpi.ranks / mpi.ranks_per_env): resume with the same number"
