@@ -207,11 +207,11 @@ def output_dir() -> Path:
 
 
 def sweeping() -> bool:
-    """Whether the current Hydra job is one job of a sweep (``-m``)."""
+    """Whether the current Hydra job is one job of a sweep (``-m``); False outside Hydra."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    return HydraConfig.get().mode == RunMode.MULTIRUN
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
 
 
 def check_layout(ranks_per_env: int, world_size: int) -> None:

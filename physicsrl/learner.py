@@ -29,6 +29,7 @@ from physicsrl.config import (
 )
 from physicsrl.dojo import Dojo, NonFiniteTraining
 from physicsrl.envs.env import PhysicsEnv
+from physicsrl.envs.factory import parts
 from physicsrl.envs.groups import GroupedEnv
 from physicsrl.envs.members import Members
 from physicsrl.envs.task import ResetDiverged, Task
@@ -46,7 +47,8 @@ def resume_point(config: TrainConfig, run_dir: Path) -> Path | None:
     """The checkpoint to continue from (None: a new run) and whether checkpoints can be
     written (the leader's checks before any environment is built); OSError or ValueError in
     one line. In a sweep each job resumes its own run directory (ValueError for one run
-    directory named for every job)."""
+    directory named for every job). A resume of another task, or with another number of
+    environments (groups x replicas), is refused here too."""
     resume = None
     if config.resume not in (None, False):
         request = str(config.resume)
@@ -55,7 +57,13 @@ def resume_point(config: TrainConfig, run_dir: Path) -> Path | None:
             request = str(run_dir)
         resume_dir = find_run(request, run_dir.parent)
         resume = Checkpoints(resume_dir / "checkpoints", 1).newest_readable()
-        check_same_task(read(resume, ["extra"])["extra"].get("config", {}), as_dict(config))
+        extra = read(resume, ["extra"])["extra"]
+        check_same_task(extra.get("config", {}), as_dict(config))
+        if not config.env.get("factory"):  # its env's batch is known once it is built
+            *_, task_config = parts(as_dict(config))
+            replicas = getattr(task_config, "replicas", 1)
+            groups = MPI.COMM_WORLD.size // config.mpi.ranks_per_env
+            check_environments(extra.get("environments", 1), groups * replicas)
     log_dir = run_dir if resume is None else resume.parent.parent
     Checkpoints(log_dir / "checkpoints", config.checkpoint.keep).check_writable()
     return resume
@@ -123,11 +131,10 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
     dojo = make_dojo(config, env, coordinator, log_dir)
     if resume is not None:
         extra = dojo.load_checkpoint(resume)
-        if (before := extra.get("environments", 1)) != n:  # the exact resume needs their RNGs
-            refuse(
-                f"the checkpoint's run had {before} environment(s), this job has {n} "
-                "(mpi.ranks / mpi.ranks_per_env): resume with the same number"
-            )
+        try:  # an env.factory's env, whose batch resume_point could not know
+            check_environments(extra.get("environments", 1), n)
+        except ValueError as error:
+            refuse(str(error))
         warn_differences(extra.get("config", {}), dojo.checkpoint_extra["config"])
     if log_dir != run_dir:
         (run_dir / RESUMED).write_text(
@@ -166,6 +173,16 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
 def n_environments(env) -> int:
     """N: the environments behind ``env`` (a batch's members, else 1)."""
     return env.batch_size[0] if isinstance(env, Members) else 1
+
+
+def check_environments(before: int, n: int) -> None:
+    """ValueError unless a job of ``n`` environments may resume a run of ``before``: the exact
+    resume needs each environment's generator state."""
+    if before != n:
+        raise ValueError(
+            f"the checkpoint's run had {before} environment(s), this job has {n} "
+            "(mpi.ranks / mpi.ranks_per_env): resume with the same number"
+        )
 
 
 TASK_KEYS = ("env.name", "env.module", "observation.name", "reward.name")

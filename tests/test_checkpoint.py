@@ -21,8 +21,12 @@ from functools import partial
 
 import pytest
 import torch
+from torchrl.checkpoint import Checkpoint
 
 from physicsrl.checkpoint import Checkpoints, damage, read
+from physicsrl.config import as_dict, train_config
+from physicsrl.envs import load_config
+from physicsrl.learner import resume_point
 from physicsrl.run_directory import checkpoint_path, find_run, is_checkpoint
 from tests.conftest import MPIEXEC, ROOT, together
 from tests.test_train import (
@@ -119,9 +123,9 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     """The newest of 3 checkpoints truncated: one warning naming it, the run resumes from the
     one before in its own directory and reproduces the lost checkpoint bit for bit; the
     resuming command's directory holds only its config, its log and ``resumed.txt``. A resume
-    by a job of 2 environments (the run had 1): one line naming both, no ``resumed.txt``. All
-    three truncated (in a copy of the run): one line naming them, exit status 2. The three
-    refused resumes run at the same time."""
+    by a job of 2 environments (the run had 1; ``env.factory``'s, known once built): one line
+    naming both, no ``resumed.txt``. All three truncated (in a copy of the run): one line
+    naming them, exit status 2. The three refused resumes run at the same time."""
     first, second = tmp_path / "first", tmp_path / "second"
     result = run([TRAIN, *SHORT, f"hydra.run.dir={first}"], tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -187,6 +191,30 @@ def assert_refused(result, line: str) -> None:
     """Exit status 2 and this one line, nothing else on stderr and no traceback."""
     assert (result.returncode, result.stderr.splitlines()) == (2, [line]), result.stdout
     assert "Traceback" not in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("task", "replicas", "stored", "refused"),
+    [("heat", None, 2, True), ("ms", 3, 3, False), ("ms", 3, 1, True)],
+)
+def test_a_resume_by_another_number_of_environments_is_refused_before_any_env_is_built(
+    tmp_path, task, replicas, stored, refused
+):
+    """A task's environments are known from the config (groups x ``env.replicas``): a resume
+    whose job (1 rank here) has another number than the checkpoint's run had is refused by
+    :func:`~physicsrl.learner.resume_point`, before the env is built; the same number resumes."""
+    groups = load_config(task, seed=0)
+    if replicas:
+        groups["env"]["model"]["backend"], groups["env"]["replicas"] = "torch", replicas
+    config = train_config({**groups, "resume": str(tmp_path / "run")})
+    extra = {"config": as_dict(config), "environments": stored}
+    checkpoints = Checkpoints(tmp_path / "run" / "checkpoints", 1)
+    checkpoints.save(Checkpoint(format="archive", extra=extra), 3)
+    if refused:
+        with pytest.raises(ValueError, match=rf"had {stored} environment\(s\), this job has "):
+            resume_point(config, tmp_path / "new")
+    else:
+        assert resume_point(config, tmp_path / "new").name == checkpoint_name(3)
 
 
 def test_a_checkpoint_directory_that_cannot_be_written_is_one_line_at_the_start(tmp_path):
