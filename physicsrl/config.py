@@ -58,7 +58,10 @@ def check_seeds(seed: int, iterations: int, eval_seeds: list[int]) -> None:
     of a run with ``seed``."""
     clash = training_seeds_among(seed, iterations, eval_seeds)
     if clash:
-        raise ValueError(f"eval.seeds {clash[:3]} are also training seeds (seed * 1e6 + i)")
+        raise ValueError(
+            f"eval.seeds {clash[:3]} are also training seeds (seed * 1e6 + i for iteration i; "
+            "a seed below 1000 never meets the held-out ones)"
+        )
 
 
 MAX_SEEDS = SEEDS_PER_RUN
