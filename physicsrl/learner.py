@@ -12,8 +12,10 @@ import logging
 import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 from mpi4py import MPI
+from torchrl.checkpoint import Checkpoint, CheckpointError
 
 from physicsrl import builders, learning_curve
 from physicsrl.checkpoint import Checkpoints, read
@@ -57,6 +59,11 @@ def resume_point(config: TrainConfig, run_dir: Path) -> Path | None:
             request = str(run_dir)
         resume_dir = find_run(request, run_dir.parent)
         resume = Checkpoints(resume_dir / "checkpoints", 1).newest_readable()
+        if "replay_buffer" not in Checkpoint.manifest(resume)["components"]:
+            raise ValueError(
+                f"resume: {resume} holds a policy, not a training run's state (no replay "
+                f"buffer, optimizer, ...): physicsrl-eval run={resume} evaluates it"
+            )
         extra = read(resume, ["extra"])["extra"]
         check_same_task(extra.get("config", {}), as_dict(config))
         if not config.env.get("factory"):  # its env's batch is known once it is built
@@ -130,7 +137,12 @@ def train_on_leader(config: TrainConfig, env, run_dir: Path, resume: Path | None
         logging.getLogger().addHandler(handler)
     dojo = make_dojo(config, env, coordinator, log_dir)
     if resume is not None:
-        extra = dojo.load_checkpoint(resume)
+        try:
+            extra = dojo.load_checkpoint(resume)
+        except CheckpointError as error:
+            if "size mismatch" not in str(error):
+                raise
+            refuse_misfit(error, f"resume={config.resume}")  # the observation's size changed
         try:  # an env.factory's env, whose batch resume_point could not know
             check_environments(extra.get("environments", 1), n)
         except ValueError as error:
@@ -185,21 +197,32 @@ def check_environments(before: int, n: int) -> None:
         )
 
 
-TASK_KEYS = ("env.name", "env.module", "observation.name", "reward.name")
-"""What a resumed run may not change: its buffer and network are the task's."""
+TASK_KEYS = ("env.name", "env.module", "env.factory", "observation.name", "reward.name")
+TASK_KEYS += ("agent.network.inputs", "agent.network.hidden", "agent.network.normalize")
+"""What a resumed run may not change: its buffer is the task's, its weights the network's."""
 
 
 def check_same_task(old: dict, new: dict) -> None:
     """ValueError naming the first of :data:`TASK_KEYS` in which the config ``new`` of a resume
     differs from its checkpoint's ``old`` (other settings may change: a warning each)."""
     for key in TASK_KEYS:
-        section, name = key.split(".")
-        before, after = old.get(section, {}).get(name), new.get(section, {}).get(name)
-        if before != after:
+        *sections, name = key.split(".")
+        before, after = old, new
+        for section in sections:
+            before, after = before.get(section, {}), after.get(section, {})
+        if before.get(name) != after.get(name):
             raise ValueError(
-                f"resume: {key}={after} where the checkpoint's run has {before}: a resume goes "
-                "on with the run's task (give its +experiment or env, observation and reward)"
+                f"resume: {key}={after.get(name)} where the checkpoint's run has "
+                f"{before.get(name)}: a resume goes on with the run's task and Q-network (give "
+                "its +experiment, or its env, observation, reward and agent.network)"
             )
+
+
+def refuse_misfit(error: Exception, setting: str) -> NoReturn:
+    """One line (status 2) for stored weights that do not fit this env's network (the size
+    mismatches that ``error`` lists), which ``setting`` changed."""
+    shapes = " ".join(str(error).split()).split("size mismatch for ")[-1]
+    refuse_config(f"{setting}: the stored weights do not fit this env's network ({shapes})")
 
 
 def warn_differences(old: dict, new: dict, prefix: str = "") -> None:
@@ -268,8 +291,7 @@ def evaluate_on_leader(
     try:
         dojo.q_network.load_state_dict(state["q_network"])
     except RuntimeError as error:  # overrides that change the observation's size
-        shapes = " ".join(str(error).split()).split("size mismatch for ")[-1]
-        refuse_config(f"overrides: the stored weights do not fit this env's network ({shapes})")
+        refuse_misfit(error, "overrides")
     seeds = cfg.seeds if cfg.seeds is not None else train_cfg.eval.seeds
     seeds = held_out_seeds(seeds) if isinstance(seeds, int) else [int(s) for s in seeds]
     policies = {"greedy DQN": dojo.q_network}

@@ -178,7 +178,8 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     assert_refused(
         refused[1],
         "error: resume: env.name=atp where the checkpoint's run has heat: a resume goes on with "
-        "the run's task (give its +experiment or env, observation and reward)",
+        "the run's task and Q-network (give its +experiment, or its env, observation, reward and "
+        "agent.network)",
     )
     assert_refused(
         refused[2],
@@ -209,12 +210,54 @@ def test_a_resume_by_another_number_of_environments_is_refused_before_any_env_is
     config = train_config({**groups, "resume": str(tmp_path / "run")})
     extra = {"config": as_dict(config), "environments": stored}
     checkpoints = Checkpoints(tmp_path / "run" / "checkpoints", 1)
-    checkpoints.save(Checkpoint(format="archive", extra=extra), 3)
+    checkpoints.save(Checkpoint(format="archive", extra=extra, replay_buffer=[]), 3)
     if refused:
         with pytest.raises(ValueError, match=rf"had {stored} environment\(s\), this job has "):
             resume_point(config, tmp_path / "new")
     else:
         assert resume_point(config, tmp_path / "new").name == checkpoint_name(3)
+
+
+def test_a_resume_of_another_network_or_of_a_policy_is_refused_before_any_env_is_built(tmp_path):
+    """A resume that changes the Q-network's shape (``agent.network.hidden``), or of a stored
+    policy (``q_network``, ``counters`` and ``extra`` only, as ``experiments/results/`` keeps
+    them), is refused by :func:`~physicsrl.learner.resume_point` in one line naming it."""
+    config = train_config({**load_config("heat", seed=0), "resume": str(tmp_path / "run")})
+    old = as_dict(config)
+    old["agent"]["network"]["hidden"] = [32]
+    checkpoints = Checkpoints(tmp_path / "run" / "checkpoints", 1)
+    checkpoints.save(Checkpoint(format="archive", extra={"config": old}, replay_buffer=[]), 3)
+    with pytest.raises(
+        ValueError, match=r"hidden=\[64, 64\] where the checkpoint's run has \[32\]"
+    ):
+        resume_point(config, tmp_path / "new")
+    policy = Checkpoint(format="archive", q_network={}, counters={}, extra={"config": old})
+    path = checkpoints.save(policy, 4)
+    with pytest.raises(ValueError, match=f"resume: {path} holds a policy, not a training run's"):
+        resume_point(config, tmp_path / "new")
+
+
+def test_a_resume_whose_observation_has_another_size_is_one_line(tmp_path, capsys):
+    """The toy's observation made 4 numbers (two frames) where its checkpoint's network reads 2:
+    the resume's load ends with status 2 and one line naming the shapes (a 20-line traceback
+    before)."""
+    sys.path.insert(0, str(TOY.parent))
+    from torchrl.envs import CatFrames, TransformedEnv
+    from train_toy_env import ToyChainEnv
+
+    from physicsrl.coordinated import Coordinator
+    from physicsrl.learner import make_dojo, train_on_leader
+
+    config = train_config({"env": {"factory": f"{TOY}:make_env"}, "resume": True})
+    env = ToyChainEnv(Coordinator(), length=3)
+    path = make_dojo(config, env, log_dir=tmp_path / "run").save_checkpoint()
+    frames = TransformedEnv(env, CatFrames(2, dim=-1, in_keys=["observation"]))
+    with pytest.raises(SystemExit) as exit_:
+        train_on_leader(config, frames, tmp_path / "new", path)
+    assert exit_.value.code == 2
+    [line] = capsys.readouterr().err.splitlines()
+    assert line.startswith("error: bad config: resume=True: the stored weights do not fit"), line
+    assert "torch.Size([64, 2]) from checkpoint" in line and "torch.Size([64, 4])" in line, line
 
 
 def test_a_checkpoint_directory_that_cannot_be_written_is_one_line_at_the_start(tmp_path):
