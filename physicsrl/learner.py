@@ -193,7 +193,7 @@ def check_environments(before: int, n: int) -> None:
     if before != n:
         raise ValueError(
             f"the checkpoint's run had {before} environment(s), this job has {n} "
-            "(mpi.ranks / mpi.ranks_per_env): resume with the same number"
+            "(mpi.ranks / mpi.ranks_per_env, times env.replicas): resume with the same number"
         )
 
 

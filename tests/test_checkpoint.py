@@ -172,7 +172,7 @@ def test_resume_skips_a_truncated_checkpoint_and_writes_only_into_the_resumed_ru
     assert_refused(
         refused[0],
         "error: the checkpoint's run had 1 environment(s), this job has 2 (mpi.ranks / "
-        "mpi.ranks_per_env): resume with the same number",
+        "mpi.ranks_per_env, times env.replicas): resume with the same number",
     )
     assert not (tmp_path / "two" / "resumed.txt").exists()
     assert_refused(
