@@ -49,8 +49,8 @@ def resume_point(config: TrainConfig, run_dir: Path) -> Path | None:
     """The checkpoint to continue from (None: a new run) and whether checkpoints can be
     written (the leader's checks before any environment is built); OSError or ValueError in
     one line. In a sweep each job resumes its own run directory (ValueError for one run
-    directory named for every job). A resume of another task, or with another number of
-    environments (groups x replicas), is refused here too."""
+    directory named for every job). A resume of another task or Q-network, of a stored policy,
+    or with another number of environments (groups x replicas) is refused here too."""
     resume = None
     if config.resume not in (None, False):
         request = str(config.resume)
@@ -64,10 +64,10 @@ def resume_point(config: TrainConfig, run_dir: Path) -> Path | None:
                 f"resume: {resume} holds a policy, not a training run's state (no replay "
                 f"buffer, optimizer, ...): physicsrl-eval run={resume} evaluates it"
             )
-        extra = read(resume, ["extra"])["extra"]
-        check_same_task(extra.get("config", {}), as_dict(config))
+        extra, settings = read(resume, ["extra"])["extra"], as_dict(config)
+        check_same_task(extra.get("config", {}), settings)
         if not config.env.get("factory"):  # its env's batch is known once it is built
-            *_, task_config = parts(as_dict(config))
+            *_, task_config = parts(settings)
             replicas = getattr(task_config, "replicas", 1)
             groups = MPI.COMM_WORLD.size // config.mpi.ranks_per_env
             check_environments(extra.get("environments", 1), groups * replicas)
