@@ -197,8 +197,10 @@ def check_environments(before: int, n: int) -> None:
         )
 
 
-TASK_KEYS = ("env.name", "env.module", "env.factory", "observation.name", "reward.name")
-TASK_KEYS += ("agent.network.inputs", "agent.network.hidden", "agent.network.normalize")
+TASK_KEYS = (
+    *("env.name", "env.module", "env.factory", "observation.name", "reward.name"),
+    *("agent.network.inputs", "agent.network.hidden", "agent.network.normalize"),
+)
 """What a resumed run may not change: its buffer is the task's, its weights the network's."""
 
 
